@@ -1,0 +1,37 @@
+# lidarcal: `make report` and `make test` work on a fresh machine (they build .venv).
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DATA := data/paper_rig
+OUT := reports/calibration
+
+.PHONY: install test report bench data notebooks clean lint study
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip uv
+	$(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[dev]'
+	$(BIN)/python -m ipykernel install --sys-prefix --name python3 >/dev/null
+	@touch $(STAMP)
+
+test: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/python -m pytest -n 2 --dist loadfile tests notebooks --nbval-lax -p no:cacheprovider
+
+report: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/lidarcal calibrate $(DATA) --out $(OUT)
+	@echo "results in $(OUT)/"
+
+data: $(STAMP)
+	$(BIN)/lidarcal simulate $(DATA) --seed 0 --rig paper --overwrite
+
+bench: $(STAMP)
+	$(BIN)/python scripts/bench.py $(DATA)
+
+lint: $(STAMP)
+	$(BIN)/ruff check lidarcal tests scripts
+
+clean:
+	rm -rf $(VENV) reports/calibration

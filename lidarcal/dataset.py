@@ -1,0 +1,439 @@
+"""The dataset contract (``shared/dataset-format.md``): read, validate, write.
+
+Every problem with the input is raised as :class:`DatasetError`, whose text is
+one line naming the file, what is wrong and what to do. The CLI prints it as
+``error: FILE: ...`` and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+DATASET_FORMAT = "lidarcal-dataset/1"
+CALIBRATION_FORMAT = "lidarcal-calibration/1"
+MEASUREMENTS_FORMAT = "lidarcal-measurements/1"
+DEFAULT_Z_AXIS_HINT = (0.0, -1.0, 0.0)
+
+
+class DatasetError(Exception):
+    """Bad input: ``str(err)`` is ``"FILE: what is wrong; what to do"``."""
+
+    def __init__(self, path: str | os.PathLike, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole camera with OpenCV distortion ``(k1, k2, p1, p2, k3)``; pixels, mm-free."""
+
+    K: np.ndarray  # shape (3, 3)
+    dist: np.ndarray  # shape (5,)
+    image_size: tuple[int, int]  # (width, height)
+    source: str = "dataset.json"
+    rms_px: float | None = None
+
+    def to_dict(self) -> dict:
+        out = {"K": self.K.tolist(), "dist": self.dist.tolist(), "source": self.source,
+               "image_size": list(self.image_size)}
+        if self.rms_px is not None:
+            out["rms_px"] = float(self.rms_px)
+        return out
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A chessboard: ``inner_corners`` = (per_row, per_column), OpenCV's patternSize."""
+
+    inner_corners: tuple[int, int]
+    square_mm: float
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return self.inner_corners
+
+    def object_points(self) -> np.ndarray:
+        """Inner-corner coordinates on the board plane (z = 0), OpenCV's order, mm (N, 3)."""
+        cols, rows = self.inner_corners
+        xs, ys = np.meshgrid(np.arange(cols), np.arange(rows))
+        return np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]) * self.square_mm
+
+
+@dataclass(frozen=True)
+class LidarSpec:
+    """Beam ``k`` has angle ``angle_min_deg + k * angle_step_deg``; angle 0 = LiDAR x axis."""
+
+    angle_min_deg: float
+    angle_max_deg: float
+    angle_step_deg: float
+    range_min_mm: float
+    range_max_mm: float
+    z_axis_hint: tuple[float, float, float] = DEFAULT_Z_AXIS_HINT
+
+    @property
+    def n_beams(self) -> int:
+        return int(round((self.angle_max_deg - self.angle_min_deg) / self.angle_step_deg)) + 1
+
+    def angles_deg(self) -> np.ndarray:
+        return self.angle_min_deg + np.arange(self.n_beams) * self.angle_step_deg
+
+
+@dataclass(frozen=True)
+class Position:
+    """One turntable position: its angle and the files captured there."""
+
+    index: int
+    psi_deg: float
+    stripe_image: Path
+    scan: Path
+
+
+@dataclass(frozen=True)
+class MeasurementSpec:
+    name: str
+    sweep: Path
+    object: str
+    reference_diameter_mm: float | None
+
+
+@dataclass
+class Dataset:
+    """A dataset folder, validated. Paths are absolute."""
+
+    root: Path
+    camera: CameraModel | None
+    intrinsics_board: BoardSpec | None
+    v_board: BoardSpec
+    lidar: LidarSpec
+    positions: list[Position]
+    measurements: list[MeasurementSpec]
+    image_size: tuple[int, int]
+    raw: dict = field(repr=False, default_factory=dict)
+
+    @property
+    def board_image(self) -> Path:
+        return self.root / "board.png"
+
+    @property
+    def dataset_json(self) -> Path:
+        return self.root / "dataset.json"
+
+    def intrinsics_images(self) -> list[Path]:
+        d = self.root / "intrinsics"
+        return sorted(d.glob("*.png")) if d.is_dir() else []
+
+    def truth(self) -> dict | None:
+        """``truth.json`` when present (synthetic datasets; evaluation only)."""
+        p = self.root / "truth.json"
+        return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _num(value: Any, path: Path, key: str, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise DatasetError(path, f"'{key}' must be a finite number, got {value!r}; fix dataset.json")
+    if positive and value <= 0:
+        raise DatasetError(path, f"'{key}' must be positive, got {value!r}; fix dataset.json")
+    return float(value)
+
+
+def _get(d: dict, key: str, path: Path, where: str) -> Any:
+    if not isinstance(d, dict) or key not in d:
+        raise DatasetError(path, f"missing key '{where}{key}'; see dataset-format.md")
+    return d[key]
+
+
+def _board(d: Any, path: Path, key: str) -> BoardSpec:
+    if not isinstance(d, dict):
+        raise DatasetError(path, f"'{key}' must be an object with inner_corners and square_mm")
+    ic = _get(d, "inner_corners", path, f"{key}.")
+    if (not isinstance(ic, list) or len(ic) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2 for v in ic)):
+        raise DatasetError(path, f"'{key}.inner_corners' must be two integers >= 2, got {ic!r}")
+    sq = _num(_get(d, "square_mm", path, f"{key}."), path, f"{key}.square_mm", positive=True)
+    return BoardSpec((int(ic[0]), int(ic[1])), sq)
+
+
+def _matrix(value: Any, shape: tuple[int, ...], path: Path, key: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise DatasetError(path, f"'{key}' must be numeric, got {value!r}") from None
+    if arr.shape != shape or not np.all(np.isfinite(arr)):
+        raise DatasetError(path, f"'{key}' must be a finite {shape} array, got {value!r}")
+    return arr
+
+
+def parse_camera(d: Any, path: Path) -> CameraModel:
+    """The ``camera`` block of dataset.json."""
+    if not isinstance(d, dict):
+        raise DatasetError(path, "'camera' must be an object with image_size, K and dist")
+    size = _get(d, "image_size", path, "camera.")
+    if (not isinstance(size, list) or len(size) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
+        raise DatasetError(path, f"'camera.image_size' must be [width, height], got {size!r}")
+    K = _matrix(_get(d, "K", path, "camera."), (3, 3), path, "camera.K")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-9:
+        raise DatasetError(path, "'camera.K' must have positive fx, fy and K[2][2] = 1")
+    dist_raw = d.get("dist", [])
+    if not isinstance(dist_raw, list) or len(dist_raw) > 8:
+        raise DatasetError(path, f"'camera.dist' must be a list of up to 5 numbers, got {dist_raw!r}")
+    dvals = _matrix(dist_raw, (len(dist_raw),), path, "camera.dist")
+    if len(dvals) > 5 and np.any(dvals[5:] != 0):
+        raise DatasetError(path, "'camera.dist' supports k1, k2, p1, p2, k3 only")
+    dist = np.zeros(5)
+    dist[: min(len(dvals), 5)] = dvals[:5]
+    return CameraModel(K, dist, (int(size[0]), int(size[1])), source="dataset.json")
+
+
+def load_dataset(root: str | os.PathLike) -> Dataset:
+    """Read and validate a dataset folder (format ``lidarcal-dataset/1``).
+
+    Checks dataset.json, positions.csv and that every referenced file exists;
+    images and scans are read later, one position at a time.
+    """
+    root = Path(root).resolve()
+    if not root.is_dir():
+        raise DatasetError(root, "not a dataset folder (does not exist or is not a directory)")
+    jpath = root / "dataset.json"
+    if not jpath.is_file():
+        raise DatasetError(jpath, "missing; every dataset needs dataset.json (see dataset-format.md)")
+    try:
+        raw = json.loads(jpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(jpath, f"not valid JSON ({e}); fix or re-export it") from None
+    if not isinstance(raw, dict):
+        raise DatasetError(jpath, "must hold a JSON object")
+    fmt = raw.get("format")
+    if fmt != DATASET_FORMAT:
+        raise DatasetError(jpath, f"unknown format {fmt!r}, expected '{DATASET_FORMAT}'; "
+                                  "convert the dataset or upgrade lidarcal")
+
+    camera = parse_camera(raw["camera"], jpath) if raw.get("camera") is not None else None
+    intr = _board(raw["intrinsics_board"], jpath, "intrinsics_board") \
+        if raw.get("intrinsics_board") is not None else None
+    v_board = _board(_get(raw, "v_board", jpath, ""), jpath, "v_board")
+
+    ld = _get(raw, "lidar", jpath, "")
+    if not isinstance(ld, dict):
+        raise DatasetError(jpath, "'lidar' must be an object")
+    vals = {k: _num(_get(ld, k, jpath, "lidar."), jpath, f"lidar.{k}")
+            for k in ("angle_min_deg", "angle_max_deg", "angle_step_deg")}
+    if vals["angle_step_deg"] <= 0 or vals["angle_max_deg"] <= vals["angle_min_deg"]:
+        raise DatasetError(jpath, "'lidar' angles must satisfy angle_min < angle_max, step > 0")
+    rmin = _num(ld.get("range_min_mm", 0.0), jpath, "lidar.range_min_mm")
+    rmax = _num(ld.get("range_max_mm", 1e9), jpath, "lidar.range_max_mm", positive=True)
+    hint = ld.get("z_axis_hint", list(DEFAULT_Z_AXIS_HINT))
+    hint_arr = _matrix(hint, (3,), jpath, "lidar.z_axis_hint")
+    if np.linalg.norm(hint_arr) == 0:
+        raise DatasetError(jpath, "'lidar.z_axis_hint' must not be the zero vector")
+    lidar = LidarSpec(vals["angle_min_deg"], vals["angle_max_deg"], vals["angle_step_deg"],
+                      rmin, rmax, tuple(float(v) for v in hint_arr))
+
+    if camera is None and intr is None:
+        raise DatasetError(jpath, "needs 'camera' (K, dist) or 'intrinsics_board' with "
+                                  "intrinsics/*.png to calibrate the camera from")
+    if camera is None and not sorted((root / "intrinsics").glob("*.png")):
+        raise DatasetError(root / "intrinsics", "no 'camera' in dataset.json and no "
+                                                "intrinsics/*.png views to calibrate from")
+
+    image_size = camera.image_size if camera is not None else _image_size_from(root / "board.png")
+    if not (root / "board.png").is_file():
+        raise DatasetError(root / "board.png", "missing; the bright image of the V-board is required")
+
+    positions = read_positions(root)
+    measurements = _measurements(raw.get("measurements", []), root, jpath)
+    return Dataset(root, camera, intr, v_board, lidar, positions, measurements, image_size, raw)
+
+
+def _image_size_from(path: Path) -> tuple[int, int]:
+    if not path.is_file():
+        raise DatasetError(path, "missing; the bright image of the V-board is required")
+    img = read_image(path)
+    return (img.shape[1], img.shape[0])
+
+
+def read_positions(root: Path) -> list[Position]:
+    """``positions.csv``: index, psi_deg, stripe_image, scan; >= 3 rows, distinct angles."""
+    ppath = root / "positions.csv"
+    if not ppath.is_file():
+        raise DatasetError(ppath, "missing; one row per turntable position is required")
+    try:
+        df = pd.read_csv(ppath, dtype={"stripe_image": str, "scan": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+        raise DatasetError(ppath, f"not a readable CSV ({str(e).splitlines()[0]})") from None
+    need = ["index", "psi_deg", "stripe_image", "scan"]
+    missing = [c for c in need if c not in df.columns]
+    if missing:
+        raise DatasetError(ppath, f"missing column(s) {', '.join(missing)}; "
+                                  "expected header index,psi_deg,stripe_image,scan")
+    for col in ("index", "psi_deg"):
+        vals = pd.to_numeric(df[col], errors="coerce")
+        bad = df.index[vals.isna() | ~np.isfinite(vals.astype(float))]
+        if len(bad):
+            raise DatasetError(ppath, f"row {int(bad[0]) + 2}: '{col}' is not a number "
+                                      f"({df[col].iloc[bad[0]]!r})")
+        df[col] = vals
+    if df[["stripe_image", "scan"]].isna().any().any():
+        row = int(np.flatnonzero(df[["stripe_image", "scan"]].isna().any(axis=1))[0])
+        raise DatasetError(ppath, f"row {row + 2}: empty stripe_image or scan path")
+    if len(df) < 3:
+        raise DatasetError(ppath, f"has {len(df)} position(s); the method needs at least 3")
+    if df["psi_deg"].duplicated().any():
+        dup = float(df["psi_deg"][df["psi_deg"].duplicated()].iloc[0])
+        raise DatasetError(ppath, f"duplicate psi_deg {dup:g}; turntable angles must be distinct")
+    if df["index"].duplicated().any():
+        dup = int(df["index"][df["index"].duplicated()].iloc[0])
+        raise DatasetError(ppath, f"duplicate index {dup}; indices must be distinct")
+    out = []
+    for row in df.itertuples(index=False):
+        out.append(Position(int(row.index), float(row.psi_deg),
+                            (root / row.stripe_image).resolve(), (root / row.scan).resolve()))
+    return out
+
+
+def _measurements(items: Any, root: Path, jpath: Path) -> list[MeasurementSpec]:
+    if not isinstance(items, list):
+        raise DatasetError(jpath, "'measurements' must be a list")
+    out = []
+    for i, m in enumerate(items):
+        if not isinstance(m, dict) or "sweep" not in m:
+            raise DatasetError(jpath, f"measurements[{i}] needs at least 'sweep'")
+        ref = m.get("reference_diameter_mm")
+        ref = None if ref is None else _num(ref, jpath, f"measurements[{i}].reference_diameter_mm")
+        out.append(MeasurementSpec(str(m.get("name", Path(m["sweep"]).name.split(".")[0])),
+                                   (root / m["sweep"]).resolve(), str(m.get("object", "disc")), ref))
+    return out
+
+
+def read_image(path: Path, image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """An 8-bit PNG as a grayscale uint8 array (BGR is converted); size checked if given."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "missing image; copy it again or drop this position")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(path, "cannot be decoded as an image (corrupt or not a PNG)")
+    if img.dtype != np.uint8:
+        raise DatasetError(path, f"expected an 8-bit image, got {img.dtype}")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if image_size is not None and (img.shape[1], img.shape[0]) != tuple(image_size):
+        raise DatasetError(path, f"image is {img.shape[1]}x{img.shape[0]}, expected "
+                                 f"{image_size[0]}x{image_size[1]} (camera.image_size)")
+    return img
+
+
+def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``scans/NNNN.csv`` as ``(angle_deg, range_mm)``; no-return beams get range NaN.
+
+    ``range_mm`` 0 or empty means no return. Ranges outside
+    ``[range_min_mm, range_max_mm]`` are also marked as no return.
+    Non-numeric, NaN or negative ranges are errors.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "missing scan; copy it again or drop this position")
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+        raise DatasetError(path, f"not a readable CSV ({str(e).splitlines()[0]})") from None
+    return _parse_scan_frame(df, path, lidar)
+
+
+def _parse_scan_frame(df: pd.DataFrame, path: Path, lidar: LidarSpec | None,
+                      cols: tuple[str, str] = ("angle_deg", "range_mm")) -> tuple[np.ndarray, np.ndarray]:
+    missing = [c for c in cols if c not in df.columns]
+    if missing:
+        raise DatasetError(path, f"missing column(s) {', '.join(missing)}; expected header "
+                                 f"{','.join(cols)}")
+    if len(df) == 0:
+        raise DatasetError(path, "scan has no rows")
+    ang = _numeric_column(df[cols[0]], path, cols[0], allow_empty=False)
+    rng_txt = df[cols[1]].astype(str).str.strip()
+    empty = rng_txt == ""
+    rng = _numeric_column(rng_txt.where(~empty, "0"), path, cols[1], allow_empty=True)
+    if np.any(rng < 0):
+        row = int(np.flatnonzero(rng < 0)[0])
+        raise DatasetError(path, f"row {row + 2}: negative range {rng[row]:g}; ranges must be >= 0")
+    if np.any(np.diff(ang) <= 0):
+        raise DatasetError(path, "angles are not strictly ascending; one row per beam expected")
+    rng = rng.astype(float)
+    no_return = rng == 0
+    if lidar is not None:
+        no_return |= (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
+    rng[no_return] = np.nan
+    return ang, rng
+
+
+def _numeric_column(col: pd.Series, path: Path, name: str, allow_empty: bool) -> np.ndarray:
+    vals = pd.to_numeric(col, errors="coerce").to_numpy(dtype=float)
+    bad = ~np.isfinite(vals)
+    if np.any(bad):
+        row = int(np.flatnonzero(bad)[0])
+        raise DatasetError(path, f"row {row + 2}: '{name}' is not a finite number "
+                                 f"({col.iloc[row]!r}); fix or re-export the file")
+    return vals
+
+
+def read_sweep(path: Path, lidar: LidarSpec | None = None) -> pd.DataFrame:
+    """``measure/*.csv.gz``: long form psi_deg, angle_deg, range_mm (NaN = no return)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "missing sweep file listed in dataset.json 'measurements'")
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError,
+            EOFError) as e:
+        raise DatasetError(path, f"not a readable (gzip) CSV ({str(e).splitlines()[0]})") from None
+    missing = [c for c in ("psi_deg", "angle_deg", "range_mm") if c not in df.columns]
+    if missing:
+        raise DatasetError(path, f"missing column(s) {', '.join(missing)}; expected header "
+                                 "psi_deg,angle_deg,range_mm")
+    psi = _numeric_column(df["psi_deg"], path, "psi_deg", allow_empty=False)
+    ang = _numeric_column(df["angle_deg"], path, "angle_deg", allow_empty=False)
+    rtxt = df["range_mm"].astype(str).str.strip()
+    rng = _numeric_column(rtxt.where(rtxt != "", "0"), path, "range_mm", allow_empty=True)
+    if np.any(rng < 0):
+        row = int(np.flatnonzero(rng < 0)[0])
+        raise DatasetError(path, f"row {row + 2}: negative range {rng[row]:g}")
+    no_return = rng == 0
+    if lidar is not None:
+        no_return |= (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
+    rng = np.where(no_return, np.nan, rng)
+    return pd.DataFrame({"psi_deg": psi, "angle_deg": ang, "range_mm": rng})
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
+    """Write JSON to a temporary file in the same folder, then rename (never half-written)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
