@@ -1,0 +1,79 @@
+"""The small public API: load a ``calibration.json`` and turn scans into 3D points."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import CALIBRATION_FORMAT, DatasetError
+from .geometry import Pose
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A calibrated rig: the LiDAR pose as a function of the turntable angle."""
+
+    path: Path
+    data: dict
+    model: object  # a lidarcal.turntable pose function
+
+    @property
+    def axis(self):
+        return self.model.axis
+
+    def pose(self, psi_deg: float) -> Pose:
+        """LiDAR pose in the camera frame at turntable angle ``psi_deg`` (eqs. 26-27)."""
+        return self.model.pose(float(psi_deg))
+
+    def points(self, psi_deg: float | np.ndarray, angle_deg: np.ndarray,
+               range_mm: np.ndarray) -> np.ndarray:
+        """Camera-frame points of LiDAR returns, eq. (28):
+        ``X_c = R(psi) [rho cos theta, rho sin theta, 0]^T + T(psi)``.
+
+        ``psi_deg`` is one angle or one per return; NaN ranges (no return) give NaN rows.
+        """
+        ang = np.radians(np.asarray(angle_deg, dtype=float))
+        rng = np.asarray(range_mm, dtype=float)
+        psi = np.broadcast_to(np.asarray(psi_deg, dtype=float), rng.shape)
+        local = np.column_stack([rng * np.cos(ang), rng * np.sin(ang), np.zeros_like(rng)])
+        out = np.empty_like(local)
+        for value in np.unique(psi):
+            sel = psi == value
+            out[sel] = self.pose(value).apply(local[sel])
+        return out
+
+
+def load_calibration(path: str | os.PathLike, model: str = "poses") -> Calibration:
+    """Read ``calibration.json`` (a file or the folder holding it).
+
+    ``model="poses"`` gives the pose function that filled ``poses``; ``"paper"``
+    the paper's chain (section 2) when it was stored.
+    """
+    from .turntable import model_from_dict
+
+    p = Path(path)
+    if p.is_dir():
+        p = p / "calibration.json"
+    if not p.is_file():
+        raise DatasetError(p, "missing; run 'lidarcal calibrate DATASET --out DIR' first")
+    try:
+        data = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(p, f"not valid JSON ({e})") from None
+    if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
+        raise DatasetError(p, f"unknown format {data.get('format') if isinstance(data, dict) else None!r},"
+                              f" expected '{CALIBRATION_FORMAT}'")
+    key = "model" if model == "poses" else f"model_{model}"
+    if key not in data and data.get("method") == model:
+        key = "model"
+    if key not in data:
+        raise DatasetError(p, f"holds no '{key}' pose function; recalibrate with this lidarcal version")
+    try:
+        fn = model_from_dict(data[key])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DatasetError(p, f"'{key}' is malformed ({e})") from None
+    return Calibration(p, data, fn)

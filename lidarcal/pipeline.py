@@ -1,0 +1,284 @@
+"""The whole calibration, dataset folder in, ``calibration.json`` out.
+
+Section 1 of the paper runs once per turntable position (in parallel worker
+processes); section 2 fits the pose function of the turntable angle to the
+single-shot samples. Policy for bad positions: a position whose files are
+broken or whose stripe/scan cannot be solved stops the run with a one-line
+error naming the file (exit 2), unless ``skip_failed`` is set, in which case it
+is skipped with a warning while at least 3 usable positions remain. Positions
+can also be dropped explicitly (``skip``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from . import __version__
+from .board import BoardView, find_v_boards
+from .camera import IntrinsicsResult, calibrate_intrinsics
+from .dataset import (CALIBRATION_FORMAT, MEASUREMENTS_FORMAT, CameraModel, Dataset, DatasetError,
+                      LidarSpec, Position, load_dataset, read_image, read_scan, read_sweep,
+                      write_json_atomic)
+from .geometry import Pose
+from .pose import single_shot_pose
+from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
+from .stripe import CameraLines, camera_lines
+from .turntable import fit_paper, fit_rigid
+
+MIN_POSITIONS = 3
+
+
+@dataclass
+class PositionResult:
+    """Section 1 at one turntable position: camera lines, scan lines, the single-shot pose."""
+
+    index: int
+    psi_deg: float
+    camera_lines: CameraLines
+    segments: VSegments
+    lidar_lines: LidarLines
+    pose: Pose
+
+
+@dataclass
+class CalibrationResult:
+    dataset: Dataset
+    camera: CameraModel
+    intrinsics: IntrinsicsResult | None
+    boards: tuple[BoardView, BoardView]
+    positions: list[PositionResult]
+    skipped: list[tuple[int, str]]
+    paper_model: object
+    rigid_model: object
+    method: str
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def model(self):
+        """The pose function that fills ``poses`` (``method``)."""
+        return self.rigid_model if self.method == "rigid" else self.paper_model
+
+    @property
+    def psi_deg(self) -> np.ndarray:
+        return np.array([p.psi_deg for p in self.positions])
+
+    @property
+    def samples(self) -> dict[int, Pose]:
+        return {p.index: p.pose for p in self.positions}
+
+    def fitted(self, model=None) -> dict[int, Pose]:
+        m = self.model if model is None else model
+        return {p.index: m.pose(p.psi_deg) for p in self.positions}
+
+    def summary(self) -> str:
+        ax = self.model.axis
+        return (f"camera from {self.camera.source}; {len(self.positions)} positions used, "
+                f"{len(self.skipped)} skipped; pose function '{self.method}'; axis direction "
+                f"{np.array2string(ax.direction, precision=5)} through "
+                f"{np.array2string(ax.point, precision=2)} mm")
+
+
+def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView, BoardView],
+                    lidar: LidarSpec, image_size: tuple[int, int]) -> PositionResult:
+    """Paper section 1 at one position: stripe lines (1.3), scan lines (1.4), pose (1.5)."""
+    img = read_image(pos.stripe_image, image_size)
+    try:
+        cl = camera_lines(camera, img, boards)
+    except ValueError as e:
+        raise DatasetError(pos.stripe_image, f"{e}; check this position or drop it with "
+                                             f"--skip {pos.index}") from None
+    ang, rng = read_scan(pos.scan, lidar)
+    try:
+        seg = split_v(ang, rng)
+        pts = scan_points(ang, rng)
+        ll = fit_v_lines(pts[seg.first], pts[seg.second], cl.alpha)
+    except ValueError as e:
+        raise DatasetError(pos.scan, f"{e}; check this position or drop it with "
+                                     f"--skip {pos.index}") from None
+    pose = single_shot_pose(cl.l, cl.E, cl.alpha, ll, lidar.z_axis_hint)
+    return PositionResult(pos.index, pos.psi_deg, cl, seg, ll, pose)
+
+
+def _solve_safe(args) -> PositionResult | DatasetError:
+    try:
+        return _solve_position(*args)
+    except DatasetError as e:
+        return e
+
+
+def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
+    """The stored camera of dataset.json when present, else one calibrated from ``intrinsics/``."""
+    if ds.camera is not None:
+        return ds.camera, None
+    if ds.intrinsics_board is None:
+        raise DatasetError(ds.dataset_json, "no 'camera' and no 'intrinsics_board' to calibrate with")
+    res = calibrate_intrinsics(ds.intrinsics_images(), ds.intrinsics_board, ds.image_size)
+    return res.camera, res
+
+
+def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]:
+    """Both chessboards of the V in ``board.png`` (section 1.2)."""
+    img = read_image(ds.board_image, camera.image_size)
+    try:
+        return find_v_boards(img, ds.v_board, camera)
+    except ValueError as e:
+        raise DatasetError(ds.board_image, f"{e}; check v_board.inner_corners in dataset.json "
+                                           "and that both boards are fully in view") from None
+
+
+def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),
+              skip_failed: bool = False, method: str = "rigid", progress: bool = False,
+              workers: int | None = None) -> CalibrationResult:
+    """Run sections 1 and 2 of the paper on a dataset folder."""
+    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    camera, intr = camera_for(ds)
+    boards = find_boards(ds, camera)
+    skip = set(skip)
+    todo = [p for p in ds.positions if p.index not in skip]
+    skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
+    warnings: list[str] = []
+    jobs = [(p, camera, boards, ds.lidar, camera.image_size) for p in todo]
+    workers = workers or min(2, os.cpu_count() or 1)
+    if workers > 1 and len(jobs) > 4:
+        with ProcessPoolExecutor(max_workers=workers) as ex:
+            outcomes = list(_progress(ex.map(_solve_safe, jobs, chunksize=4), len(jobs), progress))
+    else:
+        outcomes = [_solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
+    results: list[PositionResult] = []
+    for pos, out in zip(todo, outcomes):
+        if isinstance(out, DatasetError):
+            if not skip_failed:
+                raise out
+            skipped.append((pos.index, str(out)))
+            warnings.append(f"skipped position {pos.index}: {out}")
+        else:
+            results.append(out)
+    if len(results) < MIN_POSITIONS:
+        raise DatasetError(ds.root / "positions.csv",
+                           f"only {len(results)} usable position(s), the turntable fit needs at least "
+                           f"{MIN_POSITIONS}; capture more positions")
+    psi = np.array([r.psi_deg for r in results])
+    samples = [r.pose for r in results]
+    paper = fit_paper(psi, samples)
+    rigid = fit_rigid(psi, samples, init=paper)
+    warnings += _setup_warnings(psi, results)
+    return CalibrationResult(ds, camera, intr, boards, results, skipped, paper, rigid, method,
+                             warnings)
+
+
+def _setup_warnings(psi: np.ndarray, results: list[PositionResult]) -> list[str]:
+    out = []
+    span = float(np.ptp(psi))
+    if span < 5.0:
+        out.append(f"turntable positions span only {span:.2f} deg: the axis is poorly "
+                   "determined; sweep at least ~10 deg")
+    if len(results) < 10:
+        out.append(f"only {len(results)} positions: the pose function has little redundancy")
+    return out
+
+
+def _progress(it, total: int, enabled: bool):
+    if not enabled:
+        return it
+    from tqdm import tqdm
+
+    return tqdm(it, total=total, desc="positions", unit="pos", leave=False)
+
+
+def dataset_hash(ds: Dataset) -> str:
+    """SHA-256 over dataset.json, positions.csv and every file they reference (provenance)."""
+    h = hashlib.sha256()
+    files = [ds.dataset_json, ds.root / "positions.csv", ds.board_image]
+    for p in ds.positions:
+        files += [p.stripe_image, p.scan]
+    for f in files:
+        h.update(str(f.relative_to(ds.root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _pose_rows(poses: dict[int, Pose], psi: dict[int, float]) -> list[dict]:
+    return [{"index": i, "psi_deg": psi[i], **p.to_dict()} for i, p in sorted(poses.items())]
+
+
+def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict:
+    """``calibration.json`` per the contract, plus optional extensions."""
+    ds = res.dataset
+    psi = {p.index: p.psi_deg for p in res.positions}
+    cam = res.camera.to_dict()
+    other = res.paper_model if res.method == "rigid" else res.rigid_model
+    samples = []
+    for p in res.positions:
+        row = {"index": p.index, "psi_deg": p.psi_deg, **p.pose.to_dict(),
+               "rotation_residual": float(p.pose.residual),
+               "alpha_deg": float(np.degrees(p.camera_lines.alpha))}
+        samples.append(row)
+    return {
+        "format": CALIBRATION_FORMAT,
+        "dataset": str(ds.root),
+        "camera": cam,
+        "axis": {"point_mm": res.model.axis.point.tolist(),
+                 "direction": res.model.axis.direction.tolist()},
+        "samples": samples,
+        "poses": _pose_rows(res.fitted(), psi),
+        "model": res.model.to_dict(),
+        "method": res.method,
+        f"model_{'paper' if res.method == 'rigid' else 'rigid'}": other.to_dict(),
+        f"poses_{'paper' if res.method == 'rigid' else 'rigid'}": _pose_rows(res.fitted(other), psi),
+        "boards": [{**b.plane.to_dict(), "reprojection_rms_px": float(b.reprojection_rms_px)}
+                   for b in res.boards],
+        "skipped": [{"index": i, "reason": r} for i, r in res.skipped],
+        "warnings": list(res.warnings),
+        "provenance": {"lidarcal_version": __version__, "dataset_sha256": dataset_hash(ds),
+                       "command": command},
+    }
+
+
+def write_calibration(res: CalibrationResult, out_dir: str | os.PathLike,
+                      command: str | None = None) -> Path:
+    path = Path(out_dir) / "calibration.json"
+    write_json_atomic(path, calibration_dict(res, command))
+    return path
+
+
+def measure_dataset(dataset: str | os.PathLike, calibration: str | os.PathLike) -> pd.DataFrame:
+    """Every entry of dataset.json ``measurements``, measured with a calibration (section 3.2)."""
+    from .api import load_calibration
+    from .measure import measure_disc
+
+    ds = load_dataset(dataset)
+    cal = load_calibration(calibration)
+    if not ds.measurements:
+        raise DatasetError(ds.dataset_json, "lists no 'measurements' to measure")
+    rows = []
+    for m in ds.measurements:
+        if m.object != "disc":
+            raise DatasetError(ds.dataset_json, f"measurement '{m.name}': object '{m.object}' is not "
+                                                "supported (only 'disc')")
+        sweep = read_sweep(m.sweep, ds.lidar)
+        try:
+            r = measure_disc(sweep, cal, ds.lidar)
+        except ValueError as e:
+            raise DatasetError(m.sweep, str(e)) from None
+        ref = m.reference_diameter_mm
+        rows.append({"name": m.name, "diameter_mm": r.diameter_mm, "reference_diameter_mm": ref,
+                     "error_mm": None if ref is None else r.diameter_mm - ref,
+                     "center_mm": r.center_mm.tolist(), "normal": r.normal.tolist(),
+                     "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm})
+    return pd.DataFrame(rows)
+
+
+def write_measurements(table: pd.DataFrame, out_dir: str | os.PathLike,
+                       dataset: str | os.PathLike) -> Path:
+    path = Path(out_dir) / "measurements.json"
+    rows = [{k: v for k, v in r.items()} for r in table.to_dict(orient="records")]
+    write_json_atomic(path, {"format": MEASUREMENTS_FORMAT, "dataset": str(Path(dataset).resolve()),
+                             "measurements": rows})
+    return path
