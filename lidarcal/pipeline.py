@@ -96,7 +96,7 @@ def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView,
                                              f"--skip {pos.index}") from None
     ang, rng = read_scan(pos.scan, lidar)
     try:
-        seg = split_v(ang, rng)
+        seg = split_v(ang, rng, alpha=cl.alpha)
         pts = scan_points(ang, rng)
         ll = fit_v_lines(pts[seg.first], pts[seg.second], cl.alpha)
     except ValueError as e:

@@ -1,0 +1,629 @@
+"""Scan lines in the LiDAR frame: points (eq. 6), V segmentation, constrained lines (eqs. 7-12).
+
+Convention: the LiDAR frame is the scanner's (beam angle 0 = x axis, 90 deg =
+y axis, z = x cross y); scan points lie in its z = 0 plane. Lengths in mm,
+angles in radians inside (``_deg`` names at the edges). Beams are in
+ascending angle order, i.e. counter-clockwise about the LiDAR z axis.
+
+Which way L2 turns from L1 (the trap of eq. 8)
+----------------------------------------------
+Let ``l1`` be the ray from the vertex E towards segment 1 (the lower beam
+angles) and ``l2`` the ray towards segment 2 (eq. 12). The V-board is
+*concave* seen from the scanner (its hinge is the far point), and beams sweep
+counter-clockwise, so segment 1 lies clockwise of segment 2 as seen from the
+origin while E lies beyond both. Then ``l2`` is ``l1`` turned *clockwise* by
+alpha: ``l2 = Rot(-alpha) l1``, ``z . (l1 x l2) = -sin(alpha) < 0``. As lines
+(directions modulo pi) that is the paper's ``tan(beta - alpha)`` of eq. (8).
+Example: E = (1000, 0), l1 at 240 deg, l2 at 120 deg. A convex V (hinge
+towards the scanner) or beams in clockwise order would flip it to
+``beta + alpha``. :func:`fit_v_lines` reads the turn sign from the free fit
+(``sign`` in :class:`LidarLines`, -1 for the concave V), and the tests confirm
+it on ray-cast scans.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+_MAD = 1.4826  # MAD -> standard deviation for Gaussian noise
+_TAN_MAX_INCIDENCE = 6.0  # surfaces up to ~80 deg incidence count as continuous
+
+
+# ---------------------------------------------------------------------------
+# eq. (6)
+
+def scan_points(angle_deg: np.ndarray, range_mm: np.ndarray) -> np.ndarray:
+    """Scan points in the LiDAR plane, eq. (6): ``x = rho cos(theta), y = rho sin(theta)``.
+
+    Parameters
+    ----------
+    angle_deg : array, shape (N,)
+        Beam angles, degrees.
+    range_mm : array, shape (N,)
+        Ranges, mm; NaN (or <= 0) = no return.
+
+    Returns
+    -------
+    points : array, shape (N, 2)
+        Row ``i`` belongs to beam ``i`` (the index mapping is kept); beams
+        without a return give a NaN row.
+    """
+    a = np.radians(np.asarray(angle_deg, dtype=float))
+    r = np.asarray(range_mm, dtype=float)
+    if a.shape != r.shape or a.ndim != 1:
+        raise ValueError(f"angle_deg and range_mm must be 1-D of equal length, got {a.shape} "
+                         f"and {r.shape}")
+    r = np.where(np.isfinite(r) & (r > 0), r, np.nan)
+    return np.column_stack([r * np.cos(a), r * np.sin(a)])
+
+
+def estimate_range_noise(range_mm: np.ndarray) -> float:
+    """Robust range-noise estimate (mm) from second differences of neighbouring beams.
+
+    On a smooth surface ``rho[i-1] - 2 rho[i] + rho[i+1]`` is noise with
+    variance ``6 sigma^2`` (the curvature term is negligible at LiDAR angular
+    steps); the MAD makes jumps, spurious returns and mixed pixels harmless.
+    Only triples of three consecutive valid beams are used.
+    """
+    r = np.asarray(range_mm, dtype=float)
+    d2 = r[:-2] - 2 * r[1:-1] + r[2:]
+    d2 = d2[np.isfinite(d2)]
+    if len(d2) < 5:
+        raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
+                         "range noise; pass range_noise_mm")
+    return float(_MAD * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+# ---------------------------------------------------------------------------
+# small 2D line helpers (total least squares)
+
+@dataclass(frozen=True)
+class Line2D:
+    """Line ``normal . p = offset`` in the LiDAR plane, ``|normal| = 1``, mm."""
+
+    normal: np.ndarray
+    offset: float
+
+    @property
+    def direction(self) -> np.ndarray:
+        return np.array([-self.normal[1], self.normal[0]])
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed orthogonal distance of points (N, 2), mm."""
+        return np.asarray(points, dtype=float) @ self.normal - self.offset
+
+    def foot(self, point: np.ndarray) -> np.ndarray:
+        """Orthogonal projection of one point onto the line."""
+        p = np.asarray(point, dtype=float)
+        return p - (p @ self.normal - self.offset) * self.normal
+
+
+def fit_line_2d(points: np.ndarray) -> Line2D:
+    """Total-least-squares line through 2D points (minimises orthogonal distances)."""
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
+        raise ValueError(f"A line needs points with shape (N >= 2, 2), got {p.shape}")
+    c = p.mean(0)
+    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
+    n = vt[-1]
+    return Line2D(n, float(n @ c))
+
+
+def intersect_lines_2d(a: Line2D, b: Line2D) -> np.ndarray:
+    """The common point of two lines (2 x 2 linear system)."""
+    A = np.vstack([a.normal, b.normal])
+    if abs(np.linalg.det(A)) < 1e-9:
+        raise ValueError("lines are parallel: no vertex")
+    return np.linalg.solve(A, np.array([a.offset, b.offset]))
+
+
+def _rot2(t: float) -> np.ndarray:
+    c, s = np.cos(t), np.sin(t)
+    return np.array([[c, -s], [s, c]])
+
+
+def _cross2(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def _unit2(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v)
+    if n == 0:
+        raise ValueError("degenerate V: a segment end coincides with the vertex")
+    return v / n
+
+
+def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """TLS sum of squared orthogonal residuals of p[:k] + p[k:] for k in [lo, hi) (prefix sums)."""
+    q = p - p.mean(0)
+    n = len(q)
+
+    def sse(cnt, sx, sy, sxx, sxy, syy):
+        mx, my = sx / cnt, sy / cnt
+        a = sxx - cnt * mx * mx
+        b = sxy - cnt * mx * my
+        c = syy - cnt * my * my
+        # smallest eigenvalue of [[a, b], [b, c]]
+        return np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
+
+    cs = [np.concatenate([[0.0], np.cumsum(v)]) for v in
+          (q[:, 0], q[:, 1], q[:, 0] ** 2, q[:, 0] * q[:, 1], q[:, 1] ** 2)]
+    k = np.arange(lo, hi)
+    left = sse(k.astype(float), *(c[k] for c in cs))
+    right = sse((n - k).astype(float), *(c[-1] - c[k] for c in cs))
+    return left + right
+
+
+def _split_into_lines(p: np.ndarray, sigma: float, min_points: int) -> list[tuple[int, int]]:
+    """Top-down split of ordered points into line pieces, as [start, end) ranges.
+
+    A piece is split at the breakpoint minimising the two-line TLS error while
+    its single-line residuals have a robust scale (MAD) above ``2 sigma``.
+    """
+    n = len(p)
+    if n < 2 * min_points:
+        return [(0, n)]
+    r = fit_line_2d(p).distance(p)
+    scale = _MAD * np.median(np.abs(r - np.median(r)))
+    if scale <= 2.0 * sigma:
+        return [(0, n)]
+    sse = _tls_sse_splits(p, min_points, n - min_points + 1)
+    k = min_points + int(np.argmin(sse))
+    left = _split_into_lines(p[:k], sigma, min_points)
+    right = _split_into_lines(p[k:], sigma, min_points)
+    return left + [(a + k, b + k) for a, b in right]
+
+
+def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
+                 k: float = 3.5, trials: int = 100) -> tuple[Line2D, np.ndarray, float]:
+    """RANSAC (threshold ``k sigma``) then iterated TLS refit, threshold ``k`` x MAD scale.
+
+    Returns the line, the inlier mask and the robust residual scale (mm).
+    """
+    n = len(p)
+    best = np.ones(n, bool)
+    best_count = -1
+    if n > 3:
+        for _ in range(trials):
+            i, j = rng.choice(n, 2, replace=False)
+            d = p[j] - p[i]
+            ln = np.hypot(*d)
+            if ln == 0:
+                continue
+            nrm = np.array([-d[1], d[0]]) / ln
+            inl = np.abs((p - p[i]) @ nrm) <= k * sigma
+            c = int(inl.sum())
+            if c > best_count:
+                best, best_count = inl, c
+    mask = best
+    line = fit_line_2d(p[mask]) if mask.sum() >= 2 else fit_line_2d(p)
+    scale = sigma
+    for _ in range(20):
+        r = line.distance(p)
+        # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
+        # re-estimating it from already-trimmed inliers
+        scale = max(_MAD * np.median(np.abs(r)), 0.25 * sigma)
+        new = np.abs(r) <= k * scale
+        if new.sum() < 2:
+            break
+        line = fit_line_2d(p[new])
+        if np.array_equal(new, mask):
+            break
+        mask = new
+    return line, mask, float(scale)
+
+
+# ---------------------------------------------------------------------------
+# V segmentation
+
+@dataclass(frozen=True)
+class VSegments:
+    """The two board segments of one scan (section 1.4), in beam-angle order.
+
+    ``index1`` / ``index2`` are the beams (indices into the scan arrays) kept
+    on board 1 (lower beam angles) and board 2; ``points1`` / ``points2`` their
+    eq. (6) points. ``rejected1`` / ``rejected2`` are returns inside each
+    segment's beam span that were left out (off the line: spurious returns,
+    mixed pixels at the outer edges). ``noise_mm`` is the range noise used for
+    the thresholds, ``scale1_mm`` / ``scale2_mm`` the robust (MAD) scale of
+    the orthogonal residuals, ``opening_deg`` the free-fit angle between the
+    segments, measured as in eq. (12).
+    """
+
+    index1: np.ndarray
+    index2: np.ndarray
+    points1: np.ndarray
+    points2: np.ndarray
+    rejected1: np.ndarray
+    rejected2: np.ndarray
+    noise_mm: float
+    scale1_mm: float
+    scale2_mm: float
+    opening_deg: float
+    info: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def first(self) -> np.ndarray:
+        """Alias of ``index1`` (beams of segment 1, the lower beam angles)."""
+        return self.index1
+
+    @property
+    def second(self) -> np.ndarray:
+        """Alias of ``index2``."""
+        return self.index2
+
+
+@dataclass
+class _Segment:
+    beams: np.ndarray  # beam indices of inliers (sorted)
+    span: np.ndarray  # all beam indices of the piece (sorted)
+    line: Line2D
+    scale: float
+
+
+def _runs(rho: np.ndarray, valid_idx: np.ndarray, dtheta: float, sigma: float,
+          max_gap: int) -> np.ndarray:
+    """Connected runs of returns: beams at most ``max_gap`` apart whose range jump is small.
+
+    The allowed jump between beams ``g`` apart is ``6 sqrt(2) sigma + 6 g rho dtheta``
+    (noise plus a surface seen at up to ~80 deg incidence); depth edges are far larger.
+    Skipping up to ``max_gap`` beams bridges dropouts and isolated spurious returns.
+    """
+    m = len(valid_idx)
+    rows, cols = [], []
+    r = rho[valid_idx]
+    for lag in range(1, max_gap + 1):
+        if lag >= m:
+            break
+        g = valid_idx[lag:] - valid_idx[:-lag]
+        rr = np.minimum(r[lag:], r[:-lag])
+        tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * g * rr * dtheta
+        ok = (g <= max_gap) & (np.abs(r[lag:] - r[:-lag]) <= tau)
+        i = np.flatnonzero(ok)
+        rows.append(i)
+        cols.append(i + lag)
+    rows = np.concatenate(rows) if rows else np.zeros(0, int)
+    cols = np.concatenate(cols) if cols else np.zeros(0, int)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, m))
+    _, labels = connected_components(graph, directed=False)
+    return labels
+
+
+def _trim_outer(beams: np.ndarray, resid: np.ndarray, scale: float, from_start: bool,
+                max_trim: int) -> np.ndarray:
+    """Drop up to ``max_trim`` outermost points while their residual exceeds ``2.5 scale``."""
+    keep = np.ones(len(beams), bool)
+    order = range(len(beams)) if from_start else range(len(beams) - 1, -1, -1)
+    for t, i in enumerate(order):
+        if t >= max_trim or abs(resid[i]) <= 2.5 * scale:
+            break
+        keep[i] = False
+    return keep
+
+
+def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: float | None = None,
+            alpha: float | None = None, alpha_tol_deg: float = 15.0,
+            opening_deg: tuple[float, float] = (90.0, 170.0), min_points: int = 8,
+            max_gap: int = 4, max_trim: int = 3) -> VSegments:
+    """Find the two board segments of the V in one scan (section 1.4).
+
+    The scan also holds background, mounts, spurious returns, dropped beams and
+    mixed pixels at depth edges. Steps: (1) runs of returns connected in beam
+    order (a range jump large against noise and beam spacing breaks a run);
+    (2) each run is split top-down into straight pieces; (3) each piece gets a
+    robust line (RANSAC + iterated TLS, threshold 3.5 x MAD scale); (4) of the
+    pieces adjacent in beam order (or separated only by pieces farther than the
+    vertex, seen through a gap at the hinge), the pair forming a concave V
+    (vertex away from the scanner, ``z . (l1 x l2) < 0``, see module docstring)
+    with an opening in ``opening_deg`` and a vertex at the pieces' inner ends
+    is kept, the one with most points winning; the hinge split between them is
+    re-chosen to fit the two lines best; (5) up to ``max_trim`` points at each
+    outer end whose residual still exceeds 2.5 x scale are dropped (mixed pixels).
+
+    Parameters
+    ----------
+    angle_deg, range_mm : arrays, shape (N,)
+        The scan, ascending angles; NaN range = no return.
+    range_noise_mm : float, optional
+        Range noise sigma; estimated robustly (:func:`estimate_range_noise`) if None.
+    alpha : float, optional
+        The camera's V angle (rad): when given, only pairs whose free opening is
+        within ``alpha_tol_deg`` of it qualify.
+    opening_deg : (float, float)
+        Accepted opening range of the V, degrees.
+    min_points : int
+        Fewest points of a board segment.
+
+    Raises
+    ------
+    ValueError
+        When fewer than two line segments are found, or no pair forms the V.
+    """
+    ang = np.asarray(angle_deg, dtype=float)
+    pts = scan_points(ang, range_mm)
+    rho = np.hypot(pts[:, 0], pts[:, 1])
+    if np.any(np.diff(ang) <= 0):
+        raise ValueError("scan angles must be strictly ascending (beam order)")
+    valid_idx = np.flatnonzero(np.isfinite(rho))
+    if len(valid_idx) < 2 * min_points:
+        raise ValueError(f"scan has {len(valid_idx)} returns; need at least {2 * min_points} "
+                         "to find the two board segments")
+    sigma = float(range_noise_mm) if range_noise_mm is not None else estimate_range_noise(rho)
+    sigma = max(sigma, 1e-6 * float(np.median(rho[valid_idx])))
+    dtheta = float(np.median(np.diff(np.radians(ang))))
+    rng = np.random.default_rng(0)
+
+    labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
+    segments: list[_Segment] = []
+    for lab in np.unique(labels):
+        beams = valid_idx[labels == lab]
+        if len(beams) < min_points:
+            continue
+        p = pts[beams]
+        for a, b in _split_into_lines(p, sigma, min_points):
+            span = beams[a:b]
+            line, mask, scale = _robust_line(pts[span], sigma, rng)
+            if mask.sum() >= min_points:
+                segments.append(_Segment(span[mask], span, line, scale))
+    segments.sort(key=lambda s: s.beams[0])
+
+    if len(segments) < 2:
+        raise ValueError(f"found {len(segments)} board segment{'s' if len(segments) != 1 else ''}, "
+                         "expected 2 (the scan plane must cross both boards of the V)")
+
+    lo, hi = np.radians(opening_deg)
+    candidates = []
+    pairs = [(segments[i], segments[j], segments[i + 1:j])
+             for i in range(len(segments)) for j in range(i + 1, min(i + 4, len(segments)))]
+    for s1, s2, between in pairs:
+        try:
+            E = intersect_lines_2d(s1.line, s2.line)
+            l1 = _unit2(s1.line.foot(pts[s1.beams[0]]) - E)
+            l2 = _unit2(s2.line.foot(pts[s2.beams[-1]]) - E)
+        except ValueError:
+            continue
+        opening = float(np.arctan2(abs(_cross2(l1, l2)), l1 @ l2))
+        concave = _cross2(l1, l2) < 0
+        # the vertex must sit at the inner ends: not beyond them into either segment
+        len1 = np.linalg.norm(pts[s1.beams[-1]] - pts[s1.beams[0]])
+        len2 = np.linalg.norm(pts[s2.beams[-1]] - pts[s2.beams[0]])
+        gap1 = (s1.line.foot(pts[s1.beams[-1]]) - E) @ l1  # inner end of 1, along l1
+        gap2 = (s2.line.foot(pts[s2.beams[0]]) - E) @ l2
+        near = (-0.1 * len1 <= gap1 <= 0.25 * len1) and (-0.1 * len2 <= gap2 <= 0.25 * len2)
+        # segments between the two in beam order must be seen through a gap at the hinge
+        behind = all(np.median(rho[b.beams]) > np.hypot(*E) for b in between)
+        ok = concave and near and behind and lo <= opening <= hi
+        if ok and alpha is not None:
+            ok = abs(opening - alpha) <= np.radians(alpha_tol_deg)
+        if ok:
+            candidates.append((len(s1.beams) + len(s2.beams), s1, s2, opening))
+    if not candidates:
+        raise ValueError(f"found {len(segments)} line segments but no pair forms the V "
+                         f"(adjacent, concave, opening {opening_deg[0]:g}-{opening_deg[1]:g} deg"
+                         + (f", within {alpha_tol_deg:g} deg of alpha" if alpha is not None else "")
+                         + "); the scan plane must cross both boards")
+    candidates.sort(key=lambda c: -c[0])
+    _, s1, s2, opening = candidates[0]
+
+    # hinge: the split between the two segments in beam order that fits the two lines best
+    both = np.concatenate([s1.beams, s2.beams])
+    r1 = s1.line.distance(pts[both]) ** 2
+    r2 = s2.line.distance(pts[both]) ** 2
+    cost = np.concatenate([[0.0], np.cumsum(r1)]) + np.concatenate([np.cumsum(r2[::-1])[::-1], [0.0]])
+    k = int(np.argmin(cost))
+    if min_points <= k <= len(both) - min_points:
+        s1.beams, s2.beams = both[:k], both[k:]
+    out = []
+    for s, from_start in ((s1, True), (s2, False)):
+        resid = s.line.distance(pts[s.beams])
+        keep = _trim_outer(s.beams, resid, s.scale, from_start, max_trim)
+        beams = s.beams[keep]
+        span = np.arange(min(s.span[0], beams[0]), max(s.span[-1], beams[-1]) + 1)
+        rejected = np.setdiff1d(span[np.isfinite(rho[span])], beams)
+        out.append((beams, rejected, s.scale))
+    (b1, r1, sc1), (b2, r2, sc2) = out
+    return VSegments(b1, b2, pts[b1], pts[b2], r1, r2, sigma, sc1, sc2, float(np.degrees(opening)),
+                     info={"n_segments": len(segments), "n_candidates": len(candidates),
+                           "segments": [(int(s.beams[0]), int(s.beams[-1])) for s in segments]})
+
+
+# ---------------------------------------------------------------------------
+# lines: free and constrained (eqs. 7-12)
+
+@dataclass(frozen=True)
+class LidarLines:
+    """The two scan lines of the V in the LiDAR plane (eqs. 7-12).
+
+    ``E`` is their vertex (mm), ``l1`` / ``l2`` unit rays from E towards
+    segment 1 / segment 2 (eq. 12: to the foot of the first point of L1 and of
+    the last point of L2), ``alpha`` the angle between them (rad; equal to the
+    given alpha for a constrained fit). ``sign`` is the turn from l1 to l2:
+    ``l2 = Rot(sign * alpha) l1``, -1 for a concave V in ascending beam order
+    (the paper's ``beta - alpha``). ``E_cov`` is the 2 x 2 covariance of E
+    from the fit (Gauss-Newton, residual variance), mm^2. ``free`` holds the
+    unconstrained fit for comparison.
+    """
+
+    E: np.ndarray
+    l1: np.ndarray
+    l2: np.ndarray
+    alpha: float
+    residual_rms_mm: float
+    n1: int
+    n2: int
+    line1: Line2D
+    line2: Line2D
+    sign: int
+    method: str
+    E_cov: np.ndarray | None = None
+    free: LidarLines | None = None
+    info: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def E_lidar(self) -> np.ndarray:
+        """E as a 3D LiDAR-frame point (z = 0), for eq. (14)."""
+        return np.array([self.E[0], self.E[1], 0.0])
+
+    @property
+    def l_lidar(self) -> np.ndarray:
+        """``[l1; l2]`` as 3D LiDAR-frame directions (2, 3), z = 0, for eq. (13)."""
+        return np.array([[self.l1[0], self.l1[1], 0.0], [self.l2[0], self.l2[1], 0.0]])
+
+
+def _check_points(p: np.ndarray, name: str) -> np.ndarray:
+    p = np.asarray(p, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2 or not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be finite points with shape (N >= 2, 2), got {p.shape}")
+    return p
+
+
+def _rays(line1: Line2D, line2: Line2D, p1: np.ndarray, p2: np.ndarray):
+    """E and the eq. (12) rays: E -> foot of P_1 on L1, E -> foot of Q_N2 on L2."""
+    E = intersect_lines_2d(line1, line2)
+    return E, _unit2(line1.foot(p1[0]) - E), _unit2(line2.foot(p2[-1]) - E)
+
+
+def _residual_rms(line1: Line2D, line2: Line2D, p1: np.ndarray, p2: np.ndarray) -> float:
+    r = np.concatenate([line1.distance(p1), line2.distance(p2)])
+    return float(np.sqrt(np.mean(r ** 2)))
+
+
+def fit_v_lines_free(points1: np.ndarray, points2: np.ndarray) -> LidarLines:
+    """Two independent total-least-squares lines and their vertex (eq. 12 rays).
+
+    The unconstrained fit: the angle between the rays is whatever the data say,
+    so eq. (13) would not give a rotation. Used to initialise and to compare.
+    """
+    p1, p2 = _check_points(points1, "points1"), _check_points(points2, "points2")
+    L1, L2 = fit_line_2d(p1), fit_line_2d(p2)
+    E, l1, l2 = _rays(L1, L2, p1, p2)
+    ang = float(np.arctan2(abs(_cross2(l1, l2)), l1 @ l2))
+    return LidarLines(E, l1, l2, ang, _residual_rms(L1, L2, p1, p2), len(p1), len(p2), L1, L2,
+                      int(np.sign(_cross2(l1, l2)) or -1), "free TLS")
+
+
+def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
+                sign: int | None = None) -> LidarLines:
+    """Both lines fitted jointly so that they meet at exactly ``alpha``, eqs. (7)-(12).
+
+    Minimises the sum of squared *orthogonal* distances of the points to their
+    lines subject to the angle constraint. Line 1 is ``n . p = c1`` and line 2
+    ``(Q n) . p = c2`` with ``Q = Rot(sign * alpha)``. For a fixed ``n`` the
+    offsets are the centroid projections, so the cost is ``n^T (S1 + Q^T S2 Q) n``
+    (``S`` = scatter matrices of the centred points), minimised exactly by the
+    eigenvector of the smallest eigenvalue: a closed-form global optimum, not an
+    iteration. (The paper's linearised iteration in ``(lambda, eta1, eta2)`` is
+    :func:`fit_v_lines_paper`; it minimises vertical residuals normalised with
+    the previous slope and needs lines not parallel to the LiDAR y axis.)
+
+    Parameters
+    ----------
+    points1, points2 : arrays, shape (N1, 2), (N2, 2)
+        Segment points in ascending beam order (eq. 6).
+    alpha : float
+        Angle between the stripe rays l1, l2 from the camera (rad), in (0, pi).
+    sign : {-1, +1}, optional
+        Turn from l1 to l2 (``l2 = Rot(sign alpha) l1``); read from the free fit
+        if None (-1 for a concave V; see the module docstring).
+    """
+    p1, p2 = _check_points(points1, "points1"), _check_points(points2, "points2")
+    if not 0 < alpha < np.pi:
+        raise ValueError(f"alpha must be in (0, pi) rad, got {alpha!r}")
+    free = fit_v_lines_free(p1, p2)
+    s = free.sign if sign is None else int(np.sign(sign))
+    if s not in (-1, 1):
+        raise ValueError(f"sign must be -1 or +1, got {sign!r}")
+    Q = _rot2(s * alpha)
+    m1, m2 = p1.mean(0), p2.mean(0)
+    S1 = (p1 - m1).T @ (p1 - m1)
+    S2 = (p2 - m2).T @ (p2 - m2)
+    _, V = np.linalg.eigh(S1 + Q.T @ S2 @ Q)
+    n1 = V[:, 0]
+    n2 = Q @ n1
+    L1, L2 = Line2D(n1, float(n1 @ m1)), Line2D(n2, float(n2 @ m2))
+    E, l1, l2 = _rays(L1, L2, p1, p2)
+    ray_angle = float(np.arctan2(abs(_cross2(l1, l2)), l1 @ l2))
+    if abs(ray_angle - alpha) > 1e-6:
+        # lines meet at alpha but the segments lie on the wrong sides of E
+        raise ValueError(f"the segments do not form a V at the fitted vertex (rays at "
+                         f"{np.degrees(ray_angle):.2f} deg, lines at {np.degrees(alpha):.2f} deg); "
+                         "check the segmentation and the sign")
+    N = len(p1) + len(p2)
+    sse = float(np.sum(L1.distance(p1) ** 2) + np.sum(L2.distance(p2) ** 2))
+    # covariance of (phi, c1, c2) -> E (Gauss-Newton, residual variance)
+    dn1 = np.array([-n1[1], n1[0]])
+    dn2 = Q @ dn1
+    J = np.zeros((N, 3))
+    J[: len(p1), 0] = p1 @ dn1
+    J[: len(p1), 1] = -1.0
+    J[len(p1):, 0] = p2 @ dn2
+    J[len(p1):, 2] = -1.0
+    var = sse / max(N - 3, 1)
+    try:
+        cov_p = var * np.linalg.inv(J.T @ J)
+        A_inv = np.linalg.inv(np.vstack([n1, n2]))
+        dE = np.column_stack([-A_inv @ np.array([dn1 @ E, dn2 @ E]), A_inv[:, 0], A_inv[:, 1]])
+        E_cov = dE @ cov_p @ dE.T
+    except np.linalg.LinAlgError:
+        E_cov = None
+    return LidarLines(E, l1, l2, float(alpha), float(np.sqrt(sse / N)), len(p1), len(p2), L1, L2,
+                      s, "constrained orthogonal (closed form)", E_cov, free,
+                      info={"phi_std_rad": float(np.sqrt(cov_p[0, 0])) if E_cov is not None
+                            else float("nan"), "sse": sse})
+
+
+def fit_v_lines_paper(points1: np.ndarray, points2: np.ndarray, alpha: float,
+                      sign: int | None = None, iterations: int = 50) -> LidarLines:
+    """The paper's linearised constrained fit, eqs. (7)-(11), iterated from the free fit.
+
+    L1: ``y = lambda x + eta1`` (eq. 7); L2: ``y = tan(beta + sign alpha) x + eta2``
+    (eq. 8, the paper's ``beta - alpha`` is ``sign = -1``). With the slope
+    ``lambda0`` of the previous step in the denominators and normalisers,
+    eqs. (10)-(11) are linear in ``(lambda, eta1, eta2)`` and solved by least
+    squares; ``lambda0`` starts from the least-squares fit of L1 (eq. 9) and is
+    updated until it stops changing (``iterations=1`` is the single linear solve
+    as printed). Kept as the documented reference. The angle is always exactly
+    alpha, but the result is *not* the least-squares optimum: eq. (11) uses
+    ``cos a / (cos a + sin a lambda0)`` as the derivative of L2's slope with
+    respect to lambda where the true derivative is ``1 / (cos a + sin a
+    lambda0)^2``, so the fixed point is biased (E off by ~2x the optimum's
+    error for a symmetric V, tens of mm once a line nears the LiDAR y axis,
+    where the slope form of eq. (7) degenerates, as the paper assumes away).
+    Use :func:`fit_v_lines`.
+    """
+    p1, p2 = _check_points(points1, "points1"), _check_points(points2, "points2")
+    free = fit_v_lines_free(p1, p2)
+    s = free.sign if sign is None else int(np.sign(sign))
+    ca, sa = np.cos(alpha), s * np.sin(alpha)
+    lam0 = float(np.polyfit(p1[:, 0], p1[:, 1], 1)[0])  # eq. (9): LS fit of L1
+    x1, y1, x2, y2 = p1[:, 0], p1[:, 1], p2[:, 0], p2[:, 1]
+    it = 0
+    for it in range(1, iterations + 1):
+        den = ca - sa * lam0  # tan(beta + s alpha) = (ca lam + sa) / (ca - sa lam)
+        w1 = 1.0 / np.sqrt(1 + lam0 ** 2)
+        phi = np.sqrt(1 + ((ca * lam0 + sa) / den) ** 2)
+        # eq. (10): w1 x lam + w1 eta1 = w1 y
+        A1 = np.column_stack([w1 * x1, np.full_like(x1, w1), np.zeros_like(x1)])
+        b1 = w1 * y1
+        # eq. (11): (ca/den) x lam / phi + eta2 / phi = y / phi - (sa/den) x / phi
+        A2 = np.column_stack([(ca / den) * x2 / phi, np.zeros_like(x2), np.full_like(x2, 1 / phi)])
+        b2 = (y2 - (sa / den) * x2) / phi
+        (lam, eta1, eta2), *_ = np.linalg.lstsq(np.vstack([A1, A2]), np.concatenate([b1, b2]),
+                                                rcond=None)
+        done = abs(lam - lam0) <= 1e-13 * max(1.0, abs(lam))
+        lam0 = float(lam)
+        if done:
+            break
+    lam2 = (ca * lam0 + sa) / (ca - sa * lam0)  # eq. (8)
+    n1 = np.array([-lam0, 1.0]) / np.hypot(lam0, 1.0)
+    n2 = np.array([-lam2, 1.0]) / np.hypot(lam2, 1.0)
+    L1 = Line2D(n1, float(eta1 / np.hypot(lam0, 1.0)))
+    L2 = Line2D(n2, float(eta2 / np.hypot(lam2, 1.0)))
+    E, l1, l2 = _rays(L1, L2, p1, p2)
+    ang = float(np.arctan2(abs(_cross2(l1, l2)), l1 @ l2))
+    return LidarLines(E, l1, l2, ang, _residual_rms(L1, L2, p1, p2), len(p1), len(p2), L1, L2, s,
+                      "paper linearised eqs. (7)-(11)", None, free, info={"iterations": it})
