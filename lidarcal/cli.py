@@ -50,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--method", choices=["paper", "rigid"], default="rigid",
                    help="which pose function fills 'poses' (default: rigid, the better one)")
     s.add_argument("--skip", type=int, nargs="*", default=[], help="position indices to drop")
+    s.add_argument("--skip-failed", action="store_true",
+                   help="skip positions that cannot be solved (warning) while >= 3 remain")
     s.add_argument("--no-progress", action="store_true")
 
     s = sub.add_parser("pose", help="evaluate a calibration's pose function at turntable angles")
@@ -105,7 +107,7 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
 def _cmd_calibrate(a: argparse.Namespace) -> int:
     from .pipeline import calibrate, write_calibration
 
-    res = calibrate(a.dataset, skip=a.skip, progress=not a.no_progress and sys.stderr.isatty(),
+    res = calibrate(a.dataset, skip=a.skip, skip_failed=a.skip_failed, progress=not a.no_progress and sys.stderr.isatty(),
                     method=a.method)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)

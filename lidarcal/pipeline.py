@@ -232,7 +232,9 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
         "method": res.method,
         f"model_{'paper' if res.method == 'rigid' else 'rigid'}": other.to_dict(),
         f"poses_{'paper' if res.method == 'rigid' else 'rigid'}": _pose_rows(res.fitted(other), psi),
-        "boards": [{**b.plane.to_dict(), "reprojection_rms_px": float(b.reprojection_rms_px)}
+        "boards": [{**b.plane.to_dict(), "reprojection_rms_px": float(b.reprojection_rms_px[0]),
+                    "pnp": {**b.plane_pnp.to_dict(),
+                            "reprojection_rms_px": float(b.reprojection_rms_px[1])}}
                    for b in res.boards],
         "skipped": [{"index": i, "reason": r} for i, r in res.skipped],
         "warnings": list(res.warnings),
