@@ -1,0 +1,376 @@
+"""Both chessboards of the V and their planes in the camera frame, section 1.2, eqs. (1)-(3).
+
+Each board defines a frame ``O_p - x~y~z~`` with the board in ``z~ = 0``;
+eq. (1) maps it into the camera frame, ``X = R X~ + T``. Eq. (2): the
+homography between the board plane and the (undistorted) image is
+``H = K [r1 r2 T]``; we compute it against undistorted *normalised*
+coordinates, so ``K = I``. ``R`` is the nearest rotation to
+``[h1' h2' h1' x h2']`` (SVD), ``T`` follows by linear least squares and the
+board's plane is eq. (3): ``r3 . X = r3 . T``. ``cv2.solvePnP`` (iterative
+Levenberg-Marquardt on the pixel reprojection error, the maximum-likelihood
+pose) is kept beside it for comparison.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from .camera import detect_chessboard, project_points, undistort_pixels
+from .dataset import BoardSpec, CameraModel
+from .geometry import Plane, as_points, nearest_rotation
+
+
+@dataclass(frozen=True)
+class BoardView:
+    """One chessboard of the V seen in the bright image.
+
+    ``plane`` is eq. (3) from the homography pose (``R``, ``T``: board frame
+    -> camera frame, eq. 1); ``plane_pnp`` from ``cv2.solvePnP``
+    (``R_pnp``, ``T_pnp``). ``reprojection_rms_px`` = (homography, PnP).
+    ``outline_px`` is a closed polygon (M, 2) around the printed pattern
+    (one square beyond the outer inner corners) in the raw image, used to
+    mask this board's laser stripe. ``blackness`` is a crop of the bright
+    image (origin ``blackness_origin`` = (x0, y0)) normalised to 0 on white
+    and 1 on black squares by smooth white/black level fields (see
+    :func:`board_blackness`); ``bright_ratio`` is the black/white ratio of
+    the bright image.
+    """
+
+    corners_px: np.ndarray  # (N, 2), OpenCV order
+    plane: Plane
+    plane_pnp: Plane
+    R: np.ndarray
+    T: np.ndarray
+    R_pnp: np.ndarray
+    T_pnp: np.ndarray
+    reprojection_rms_px: tuple[float, float]
+    outline_px: np.ndarray  # (M, 2)
+    blackness: np.ndarray | None = field(default=None, repr=False)
+    blackness_origin: tuple[int, int] = (0, 0)
+    bright_ratio: float | None = None
+
+    @property
+    def centroid_px(self) -> np.ndarray:
+        return self.corners_px.mean(axis=0)
+
+    def mask(self, image_shape: tuple[int, ...]) -> np.ndarray:
+        """Boolean mask (H, W) of the board's outline polygon."""
+        m = np.zeros(image_shape[:2], np.uint8)
+        cv2.fillPoly(m, [np.round(self.outline_px).astype(np.int32)], 1)
+        return m.astype(bool)
+
+    def blackness_map(self, image_shape: tuple[int, ...]) -> np.ndarray | None:
+        """``blackness`` placed in a full image (H, W), 0 outside its crop; None if absent."""
+        if self.blackness is None:
+            return None
+        out = np.zeros(image_shape[:2], np.float32)
+        x0, y0 = self.blackness_origin
+        h, w = self.blackness.shape
+        H, W = out.shape
+        out[y0:min(y0 + h, H), x0:min(x0 + w, W)] = self.blackness[:H - y0, :W - x0]
+        return out
+
+
+def pose_from_homography(camera: CameraModel, corners_px: np.ndarray,
+                         object_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Board pose ``(R, T)`` (eq. 1) from the plane-to-image homography, eq. (2).
+
+    The corners are undistorted to normalised coordinates, so eq. (2) reads
+    ``t (x, y, 1)^T = [r1 r2 T] (x~, y~, 1)^T``. ``H`` is estimated by
+    :func:`homography` (normalised DLT + reprojection refinement); its
+    scale is ``2 / (|h1| + |h2|)`` with the sign that puts the board in front
+    of the camera; ``R`` is the nearest rotation to ``[h1' h2' h1' x h2']``
+    (SVD) and ``T`` solves the linear least-squares problem
+    ``x (r3 . X~ + T_z) = r1 . X~ + T_x`` (and the same in y) with ``R`` fixed.
+
+    Parameters
+    ----------
+    corners_px : array-like, shape (N, 2)
+        Distorted pixel coordinates, N >= 4.
+    object_points : array-like, shape (N, 3) or (N, 2)
+        Board coordinates, mm, ``z~ = 0``.
+    """
+    obj = np.asarray(object_points, dtype=float)
+    if obj.ndim != 2 or obj.shape[1] not in (2, 3):
+        raise ValueError(f"Expected object points with shape (N, 2) or (N, 3), got {obj.shape}")
+    if obj.shape[1] == 3:
+        if np.max(np.abs(obj[:, 2])) > 1e-9 * max(1.0, np.max(np.abs(obj))):
+            raise ValueError("Object points must lie in the board plane z = 0")
+        obj = obj[:, :2]
+    px = as_points(corners_px, 2)
+    if len(px) != len(obj) or len(px) < 4:
+        raise ValueError(f"Need >= 4 matching points, got {len(px)} image and {len(obj)} object")
+    xy = undistort_pixels(camera, px)
+    ok = np.all(np.isfinite(xy), axis=1)
+    xy, obj = xy[ok], obj[ok]
+    H = homography(obj, xy)
+    h1, h2, h3 = H[:, 0], H[:, 1], H[:, 2]
+    lam = 2.0 / (np.linalg.norm(h1) + np.linalg.norm(h2))
+    if lam * h3[2] < 0:  # the board's origin must be in front of the camera
+        lam = -lam
+    r1, r2 = lam * h1, lam * h2
+    R, _ = nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
+    # T by linear least squares with R fixed: (R X~ + T)_xy = (x, y) (R X~ + T)_z
+    P = np.column_stack([obj, np.zeros(len(obj))]) @ R.T
+    A = np.zeros((2 * len(xy), 3))
+    b = np.zeros(2 * len(xy))
+    A[0::2, 0] = 1
+    A[0::2, 2] = -xy[:, 0]
+    b[0::2] = xy[:, 0] * P[:, 2] - P[:, 0]
+    A[1::2, 1] = 1
+    A[1::2, 2] = -xy[:, 1]
+    b[1::2] = xy[:, 1] * P[:, 2] - P[:, 1]
+    T, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return R, T
+
+
+def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Plane-to-plane homography ``dst ~ H src`` (3, 3), ``H[2, 2] = 1`` where possible.
+
+    Hartley-normalised DLT (SVD, float64), then Levenberg-Marquardt on the
+    transfer error in ``dst`` (the maximum-likelihood H when only ``dst`` is
+    noisy, as for board corners). Needs >= 4 points, no three collinear.
+    """
+    src, dst = as_points(src, 2), as_points(dst, 2)
+
+    def norm(p: np.ndarray) -> np.ndarray:
+        c = p.mean(0)
+        s = np.sqrt(2) / max(np.sqrt(((p - c) ** 2).sum(1)).mean(), 1e-300)
+        return np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1]])
+
+    Ns, Nd = norm(src), norm(dst)
+    a = src @ Ns[:2, :2].T + Ns[:2, 2]
+    b = dst @ Nd[:2, :2].T + Nd[:2, 2]
+    n = len(a)
+    A = np.zeros((2 * n, 9))
+    A[0::2, 0:2], A[0::2, 2] = a, 1
+    A[0::2, 6:8], A[0::2, 8] = -b[:, :1] * a, -b[:, 0]
+    A[1::2, 3:5], A[1::2, 5] = a, 1
+    A[1::2, 6:8], A[1::2, 8] = -b[:, 1:] * a, -b[:, 1]
+    _, sv, vt = np.linalg.svd(A, full_matrices=False)
+    if sv[-2] < 1e-12 * sv[0]:
+        raise ValueError("Homography is undetermined (degenerate points)")
+    Hn = vt[-1].reshape(3, 3)
+    Hn = Hn / Hn[2, 2] if abs(Hn[2, 2]) > 1e-12 else Hn / np.linalg.norm(Hn)
+
+    def resid(h: np.ndarray) -> np.ndarray:
+        M = np.append(h, Hn.ravel()[8]).reshape(3, 3)
+        q = np.column_stack([a, np.ones(n)]) @ M.T
+        return (q[:, :2] / q[:, 2:] - b).ravel()
+
+    sol = least_squares(resid, Hn.ravel()[:8], method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    Hn = np.append(sol.x, Hn.ravel()[8]).reshape(3, 3)
+    H = np.linalg.inv(Nd) @ Hn @ Ns
+    return H / H[2, 2] if abs(H[2, 2]) > 1e-12 else H
+
+
+def plane_from_pose(R: np.ndarray, T: np.ndarray) -> Plane:
+    """Eq. (3): the board plane ``r3 . X = r3 . T`` in the camera frame."""
+    return Plane.from_normal_point(np.asarray(R)[:, 2], np.asarray(T))
+
+
+def pose_pnp(camera: CameraModel, corners_px: np.ndarray, object_points: np.ndarray,
+             R0: np.ndarray | None = None, T0: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Board pose by ``cv2.solvePnP`` (iterative LM on pixel reprojection error, with distortion).
+
+    Started from ``(R0, T0)`` when given (e.g. the homography pose), otherwise
+    from OpenCV's own planar initialisation (IPPE).
+    """
+    obj = np.asarray(object_points, dtype=float)
+    if obj.shape[1] == 2:
+        obj = np.column_stack([obj, np.zeros(len(obj))])
+    img = as_points(corners_px, 2)
+    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
+    if R0 is None:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+        if not ok:
+            raise ValueError("solvePnP (IPPE) failed")
+    else:
+        rvec, tvec = cv2.Rodrigues(np.asarray(R0, float))[0], np.asarray(T0, float).reshape(3, 1)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, rvec.copy(), tvec.copy(),
+                                  useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise ValueError("solvePnP (iterative) failed")
+    return cv2.Rodrigues(rvec)[0], tvec.ravel()
+
+
+def reprojection_rms_px(camera: CameraModel, R: np.ndarray, T: np.ndarray,
+                        corners_px: np.ndarray, object_points: np.ndarray) -> float:
+    """RMS distance (px) between detected corners and the board corners projected by ``(R, T)``."""
+    obj = np.asarray(object_points, dtype=float)
+    if obj.shape[1] == 2:
+        obj = np.column_stack([obj, np.zeros(len(obj))])
+    proj = project_points(camera, obj @ np.asarray(R).T + np.asarray(T))
+    return float(np.sqrt(np.mean(np.sum((proj - corners_px) ** 2, axis=1))))
+
+
+def board_outline_px(camera: CameraModel, R: np.ndarray, T: np.ndarray, board: BoardSpec,
+                     margin_squares: float = 1.0, samples_per_edge: int = 40) -> np.ndarray:
+    """Polygon (M, 2) around the pattern, ``margin_squares`` beyond the outer inner corners.
+
+    The rectangle is drawn on the board plane and projected with distortion
+    (its edges are sampled so they curve as the image does).
+    """
+    cols, rows = board.inner_corners
+    sq = board.square_mm
+    x0, x1 = -margin_squares * sq, (cols - 1 + margin_squares) * sq
+    y0, y1 = -margin_squares * sq, (rows - 1 + margin_squares) * sq
+    t = np.linspace(0, 1, samples_per_edge, endpoint=False)
+    edges = [np.column_stack([x0 + (x1 - x0) * t, np.full_like(t, y0)]),
+             np.column_stack([np.full_like(t, x1), y0 + (y1 - y0) * t]),
+             np.column_stack([x1 - (x1 - x0) * t, np.full_like(t, y1)]),
+             np.column_stack([np.full_like(t, x0), y1 - (y1 - y0) * t])]
+    xy = np.vstack(edges)
+    P = np.column_stack([xy, np.zeros(len(xy))]) @ np.asarray(R).T + np.asarray(T)
+    return project_points(camera, P)
+
+
+def board_view(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec) -> BoardView:
+    """Both plane estimates (homography eq. 2-3, and solvePnP) for one detected board."""
+    obj = board.object_points()
+    R, T = pose_from_homography(camera, corners_px, obj)
+    R_pnp, T_pnp = pose_pnp(camera, corners_px, obj, R, T)
+    rms = (reprojection_rms_px(camera, R, T, corners_px, obj),
+           reprojection_rms_px(camera, R_pnp, T_pnp, corners_px, obj))
+    outline = board_outline_px(camera, R_pnp, T_pnp, board, margin_squares=1.0)
+    return BoardView(np.asarray(corners_px, float), plane_from_pose(R, T),
+                     plane_from_pose(R_pnp, T_pnp), R, T, R_pnp, T_pnp, rms, outline)
+
+
+def _poly2(px: np.ndarray, scale: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    q = (np.asarray(px, float) - centre) / scale
+    x, y = q[..., 0], q[..., 1]
+    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)
+
+
+def board_blackness(image: np.ndarray, camera: CameraModel, view: BoardView, board: BoardSpec,
+                    pad_px: int = 40) -> tuple[np.ndarray, tuple[int, int], float]:
+    """How black each pixel of a board is in the bright image: 0 white .. 1 black.
+
+    The image is sampled at the centres of all squares (pose from PnP); the
+    darker parity is black. Smooth white and black level fields (quadratic
+    in the image, robustly fitted) turn the image into
+    ``(W - I) / (W - B)``, clipped to [0, 1], over the outline's bounding
+    box plus ``pad_px``. The edges keep the image's own blur, which is also
+    the blur the stripe image has. Returns (crop, (x0, y0), black/white ratio).
+    """
+    img = np.asarray(image, np.float32)
+    H, W = img.shape[:2]
+    cols, rows = board.inner_corners
+    sq = board.square_mm
+    ii, jj = np.meshgrid(np.arange(-1, cols), np.arange(-1, rows))
+    uv = np.column_stack([(ii.ravel() + 0.5) * sq, (jj.ravel() + 0.5) * sq])
+    P = np.column_stack([uv, np.zeros(len(uv))]) @ view.R_pnp.T + view.T_pnp
+    c = project_points(camera, P)
+    parity = ((ii + jj).ravel() % 2).astype(bool)
+    inside = (c[:, 0] >= 2) & (c[:, 0] < W - 2) & (c[:, 1] >= 2) & (c[:, 1] < H - 2)
+    r = max(1, int(0.15 * _mean_square_px(view.corners_px, board)))
+    box = cv2.blur(img, (2 * r + 1, 2 * r + 1))
+    vals = box[np.round(c[:, 1]).astype(int).clip(0, H - 1), np.round(c[:, 0]).astype(int).clip(0, W - 1)]
+    a, b = parity & inside, ~parity & inside
+    if np.median(vals[a]) < np.median(vals[b]):
+        a, b = b, a  # a = white
+    centre = c[inside].mean(0)
+    scale = np.maximum(np.ptp(c[inside], axis=0), 1.0)
+
+    def fit(sel: np.ndarray) -> np.ndarray:
+        A, y = _poly2(c[sel], scale, centre), vals[sel]
+        keep = np.ones(len(y), bool)
+        for _ in range(3):
+            coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
+            res = y - A @ coef
+            s = 1.4826 * np.median(np.abs(res[keep])) + 1e-6
+            keep = np.abs(res) <= 3.5 * s
+        return coef
+
+    cw, cb = fit(a), fit(b)
+    xs, ys = view.outline_px[:, 0], view.outline_px[:, 1]
+    x0, y0 = int(max(np.floor(xs.min()) - pad_px, 0)), int(max(np.floor(ys.min()) - pad_px, 0))
+    x1, y1 = int(min(np.ceil(xs.max()) + pad_px + 1, W)), int(min(np.ceil(ys.max()) + pad_px + 1, H))
+    gy, gx = np.mgrid[y0:y1, x0:x1]
+    A = _poly2(np.stack([gx, gy], axis=-1).astype(float), scale, centre)
+    Wl, Bl = A @ cw, A @ cb
+    with np.errstate(invalid="ignore", divide="ignore"):
+        blk = (Wl - img[y0:y1, x0:x1]) / np.maximum(Wl - Bl, 1e-3)
+    ratio = float(np.median(vals[b]) / max(np.median(vals[a]), 1e-6))
+    return np.clip(np.nan_to_num(blk), 0.0, 1.0).astype(np.float32), (x0, y0), ratio
+
+
+def _fill_board(gray: np.ndarray, outline_px: np.ndarray, grow_px: int) -> np.ndarray:
+    """Paint a detected board's area with the local white so the detector cannot see it again."""
+    mask = np.zeros(gray.shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(outline_px).astype(np.int32)], 255)
+    if grow_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
+        mask = cv2.dilate(mask, k)
+    inside = gray[mask > 0]
+    white = np.percentile(inside, 90) if inside.size else 255
+    out = gray.copy()
+    out[mask > 0] = np.uint8(white)
+    return out
+
+
+def find_v_boards(image: np.ndarray, board: BoardSpec,
+                  camera: CameraModel) -> tuple[BoardView, BoardView]:
+    """Both chessboards of the V in one bright image, sorted left to right (section 1.2).
+
+    Detect one board, paint its pattern area over with its own white, detect
+    the second; each gets the homography plane (eqs. 2-3) and the solvePnP
+    plane. The classic detector and ``CALIB_CB_EXHAUSTIVE`` are tried when the
+    first attempt fails. Board 0 is the one whose corner centroid is further
+    left in the image. The 180 deg corner-order ambiguity of a chessboard
+    does not change its plane.
+
+    Raises
+    ------
+    ValueError
+        When fewer than two distinct boards are found (the caller names the file).
+    """
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    views: list[BoardView] = []
+    work = img
+    for k in range(2):
+        corners = detect_chessboard(work, board.pattern_size)
+        if corners is None:
+            corners = detect_chessboard(work, board.pattern_size, exhaustive=True)
+        if corners is None:
+            raise ValueError(f"found {k} of the 2 chessboards of the V "
+                             f"({board.inner_corners[0]}x{board.inner_corners[1]} inner corners); "
+                             "check v_board.inner_corners, lighting and focus")
+        view = board_view(camera, corners, board)
+        if views:
+            _check_distinct(views[0], view, board)
+        views.append(view)
+        if k == 0:
+            side = _mean_square_px(corners, board)
+            work = _fill_board(img, view.outline_px, grow_px=max(1, round(0.1 * side)))
+    views.sort(key=lambda v: v.centroid_px[0])
+    out = []
+    for v in views:
+        blk, origin, ratio = board_blackness(img, camera, v, board)
+        out.append(replace(v, blackness=blk, blackness_origin=origin, bright_ratio=ratio))
+    return out[0], out[1]
+
+
+def _mean_square_px(corners: np.ndarray, board: BoardSpec) -> float:
+    g = corners.reshape(board.inner_corners[1], board.inner_corners[0], 2)
+    return float(np.mean(np.linalg.norm(np.diff(g, axis=1), axis=2)))
+
+
+def _check_distinct(a: BoardView, b: BoardView, board: BoardSpec) -> None:
+    """The second detection must be another board, not the first found again."""
+    side = _mean_square_px(a.corners_px, board)
+    inside = cv2.pointPolygonTest(a.outline_px.astype(np.float32).reshape(-1, 1, 2),
+                                  tuple(float(v) for v in b.centroid_px), False)
+    if np.linalg.norm(a.centroid_px - b.centroid_px) < 2 * side or inside > 0:
+        raise ValueError("the second chessboard found is the first one again; "
+                         "the two boards of the V must both be fully visible")

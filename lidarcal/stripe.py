@@ -1,0 +1,520 @@
+"""Laser stripes on the V: centre lines, 3D stripe points, laser plane, E, l1, l2, alpha (section 1.3).
+
+The LiDAR's scan plane ``Pi_L`` cuts each board of the V in a straight line
+(``L1``, ``L2``). Its red laser is visible to the camera: the stripe centres
+are extracted with sub-pixel precision inside each board's outline, cast as
+rays and met with that board's plane (eqs. 3, 5), and ``Pi_L`` is fitted to
+the 3D points of both stripes (eq. 4). ``E`` is the common point of
+``Pi_1, Pi_2, Pi_L``; ``l_k = n_k x n_L`` (oriented towards stripe ``k``),
+``alpha = arccos(l1 . l2)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .board import BoardView
+from .camera import backproject_to_plane, undistort_pixels
+from .dataset import CameraModel
+from .geometry import Plane, fit_plane, fit_plane_algebraic, intersect_planes, unit
+
+MAD_TO_SIGMA = 1.4826
+
+
+def _noise_sigma(img: np.ndarray, mask: np.ndarray) -> float:
+    """Robust sensor-noise sigma (DN) from horizontal pixel differences inside ``mask``."""
+    d = np.diff(img[::2], axis=1)  # every other row is plenty for a MAD
+    m = mask[::2, 1:] & mask[::2, :-1]
+    v = d[m]
+    if v.size < 10:
+        v = d.ravel()
+    mad = np.median(np.abs(v - np.median(v)))
+    return float(max(MAD_TO_SIGMA * mad / np.sqrt(2.0), 0.5))
+
+
+def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Rough stripe line (point, unit direction) in pixels from the brightest pixels, or None.
+
+    Pixels well above the local background (a wide median along both axes)
+    are fitted by PCA, with two rounds of rejection by the median absolute
+    perpendicular residual.
+    """
+    sm = cv2.GaussianBlur(img, (0, 0), 1.5)
+    vals = sm[mask]
+    if vals.size < 20:
+        return None
+    base = np.median(vals[::7])
+    peak = np.percentile(vals, 99.9)
+    thr = base + max(0.35 * (peak - base), 6.0 * noise)
+    ys, xs = np.nonzero(mask & (sm > thr))
+    if xs.size < 10:
+        return None
+    P = np.column_stack([xs, ys]).astype(float)
+    keep = np.ones(len(P), bool)
+    for _ in range(3):
+        c = P[keep].mean(0)
+        _, _, vt = np.linalg.svd(P[keep] - c, full_matrices=False)
+        t = vt[0]
+        nrm = np.array([-t[1], t[0]])
+        r = (P - c) @ nrm
+        s = MAD_TO_SIGMA * np.median(np.abs(r[keep]))
+        keep = np.abs(r) <= max(3 * s, 2.0)
+        if keep.sum() < 10:
+            return None
+    return c, t
+
+
+def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: int = 6
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Iterated centroid of background-free profiles (M, W) in a window ``start +- half``.
+
+    Returns centres (profile index units) and the summed signal in the window.
+    Symmetric windows make the fixed point the centre of a symmetric stripe
+    profile, including one clipped at saturation.
+    """
+    idx = np.arange(prof.shape[1])[None, :]
+    c = start.astype(float).copy()
+    s = np.clip(prof, 0, None)
+    mass = np.zeros(len(c))
+    for _ in range(iters):
+        # fractional weights at the window edges keep the centroid continuous in c
+        w = np.clip(half + 0.5 - np.abs(idx - c[:, None]), 0.0, 1.0)
+        ws = w * s
+        mass = ws.sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c_new = (ws * idx).sum(1) / mass
+        c = np.where(mass > 0, c_new, np.nan)
+    return c, mass
+
+
+def _profiles(img: np.ndarray, xs: np.ndarray, y0: np.ndarray, L: int) -> tuple[np.ndarray,
+                                                                               np.ndarray]:
+    """Column profiles ``img[y0 + k, x]`` for ``k = -L..L`` (M, 2L+1), clipped to the image."""
+    H = img.shape[0]
+    top = np.clip(np.round(y0).astype(int) - L, 0, max(H - 2 * L - 1, 0))
+    rows = top[:, None] + np.arange(2 * L + 1)[None, :]
+    rows = np.clip(rows, 0, H - 1)
+    return img[rows, xs[:, None]], top
+
+
+def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | None = None,
+                   min_snr: float = 8.0, blackness: np.ndarray | None = None,
+                   rho: float | None = None, return_info: bool = False):
+    """Sub-pixel centre line of a laser stripe inside ``mask`` (section 1.3), pixels (N, 2).
+
+    1. Robust noise level (MAD of pixel differences) and a coarse stripe line
+       (PCA of the brightest pixels): its direction decides whether the
+       stripe is sampled by columns (|slope| <= 1) or by rows.
+    2. Stripe width from the median profile; per column, a window of a few
+       widths around the predicted centre; background from the window's two
+       outer thirds (a straight line; with ``blackness``, ambient light
+       reflected by the squares: ``b0 + b1 * blackness``).
+    3. Centre = iterated symmetric-window centroid (robust to saturation);
+       columns whose peak is below ``min_snr`` noise sigmas are dropped.
+    4. With ``blackness`` (0 on white, 1 on black squares, as seen in the
+       bright image; :meth:`lidarcal.board.BoardView.blackness_map`) each
+       profile is divided by the stripe's albedo ``1 - (1 - rho) blackness``
+       before the centroid. Without this, a stripe running along a square
+       edge is pulled towards the white square by up to half its width.
+       ``rho`` (the stripe's black/white reflectance ratio) is estimated from
+       this stripe's brightness when not given (:func:`reflectance_ratio`);
+       when it cannot be (no contrast along the stripe) no division is made.
+    5. Outliers (speckle, glints, edges) are rejected against a smooth curve:
+       a straight line in undistorted normalised coordinates when ``camera``
+       is given (a straight stripe on the board seen through the lens), else
+       a quadratic in the image; 3.5 robust sigmas, iterated.
+
+    With ``return_info`` a dict comes back as a second value: ``snr``,
+    ``width_px``, ``noise_dn``, ``rho`` (used), ``fit_rms_px``,
+    ``n_rejected`` and ``samples`` (x, signal mass, effective blackness per
+    column, for a joint :func:`reflectance_ratio`).
+    """
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    img = img.astype(np.float32)
+    mask = np.asarray(mask, bool)
+    if mask.shape != img.shape:
+        raise ValueError(f"mask shape {mask.shape} differs from image shape {img.shape}")
+    if blackness is not None and np.shape(blackness) != img.shape:
+        raise ValueError(f"blackness shape {np.shape(blackness)} differs from image shape "
+                         f"{img.shape}")
+    empty = (np.empty((0, 2)), {"snr": np.empty(0), "n_rejected": 0, "rho": None,
+                                "samples": None}) if return_info else np.empty((0, 2))
+    if not mask.any():
+        return empty
+    ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    y_lo, y_hi, x_lo, x_hi = ys[0], ys[-1] + 1, xs[0], xs[-1] + 1
+    pad = 40
+    y_lo, x_lo = max(y_lo - pad, 0), max(x_lo - pad, 0)
+    y_hi, x_hi = min(y_hi + pad, img.shape[0]), min(x_hi + pad, img.shape[1])
+    sub, msub = img[y_lo:y_hi, x_lo:x_hi], mask[y_lo:y_hi, x_lo:x_hi]
+    bsub = None if blackness is None else \
+        np.nan_to_num(np.asarray(blackness, np.float32)[y_lo:y_hi, x_lo:x_hi], nan=0.0)
+    noise = _noise_sigma(sub, msub)
+    coarse = _coarse_line(sub, msub, noise)
+    if coarse is None:
+        return empty
+    c0, t0 = coarse
+    transpose = abs(t0[0]) < abs(t0[1])
+    if transpose:  # sample by rows: swap axes, solve as by columns, swap back
+        sub, msub = sub.T, msub.T
+        bsub = None if bsub is None else bsub.T
+        c0, t0 = c0[::-1], t0[::-1]
+    slope = t0[1] / t0[0]
+    res = _centres_by_column(np.ascontiguousarray(sub), msub, c0, slope, noise, min_snr,
+                             None if bsub is None else np.ascontiguousarray(bsub), rho)
+    if res is None:
+        return empty
+    pts, snr, width, rho_used, samples = res
+    if transpose:
+        pts = pts[:, ::-1]
+    pts = pts + np.array([x_lo, y_lo], float)
+    keep, fit_rms = _reject_outliers(pts, camera)
+    info = {"snr": snr[keep], "width_px": width, "noise_dn": noise, "rho": rho_used,
+            "fit_rms_px": fit_rms, "n_rejected": int((~keep).sum()), "samples": samples}
+    return (pts[keep], info) if return_info else pts[keep]
+
+
+def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
+    """Background of each profile (M, W) fitted to its two outer thirds.
+
+    A straight line through the medians of the two thirds; where the
+    blackness differs between the two thirds, ``b0 + b1 * blackness``
+    (ambient light is reflected in proportion to the squares' albedo).
+    """
+    n = prof.shape[1]
+    third = max(n // 3, 2)
+    left = np.median(prof[:, :third], axis=1)
+    right = np.median(prof[:, -third:], axis=1)
+    xl, xr = (third - 1) / 2.0, n - 1 - (third - 1) / 2.0
+    k = np.arange(n)[None, :]
+    bg = left[:, None] + (right - left)[:, None] * (k - xl) / (xr - xl)
+    if bprof is None:
+        return bg
+    bl = np.median(bprof[:, :third], axis=1)
+    br = np.median(bprof[:, -third:], axis=1)
+    db = br - bl
+    step = np.abs(db) > 0.3
+    if np.any(step):
+        slope = np.where(step, (right - left) / np.where(step, db, 1.0), 0.0)
+        bg_b = left[:, None] + slope[:, None] * (bprof - bl[:, None])
+        bg = np.where(step[:, None], bg_b, bg)
+    return bg
+
+
+def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope: float,
+                       noise: float, min_snr: float, blk: np.ndarray | None = None,
+                       rho: float | None = None):
+    """Column-wise centres; returns (points (N, 2), snr, width, rho used, samples) or None."""
+    cols = np.nonzero(mask.any(axis=0))[0]
+    if cols.size < 5:
+        return None
+    H = img.shape[0]
+    y_pred = c0[1] + slope * (cols - c0[0])
+    inside = (y_pred >= 0) & (y_pred < H)
+    cols, y_pred = cols[inside], y_pred[inside]
+    if cols.size < 5:
+        return None
+    # stripe width from a first look: median FWHM of the profiles
+    L0 = min(30, (H - 1) // 2)
+    prof, top = _profiles(img, cols, y_pred, L0)
+    width = _fwhm(prof, noise)
+    L = int(min(max(np.ceil(4 * width) + 6, 10), (H - 1) // 2))
+    half = max(1.5 * width, 2.0)
+    y_cur = y_pred
+    samples = None
+    rho_used = rho
+    # with blackness: pass 0 plain, then passes with the albedo divided out; rho (when not
+    # given) is re-estimated after each pass, as the centres it weights by move
+    n_pass = 2 if blk is None else 4
+    idx = np.arange(2 * L + 1)[None, :]
+    for it in range(n_pass):
+        prof, top = _profiles(img, cols, y_cur, L)
+        bprof = None if blk is None else np.clip(_profiles(blk, cols, y_cur, L)[0], 0.0, 1.0)
+        s = prof - _background(prof, bprof)
+        start = np.argmax(_smooth_rows(s, max(width / 2.355, 0.8)), axis=1)
+        peak = s[np.arange(len(s)), start]
+        s_raw = s
+        if bprof is not None and rho_used is not None and it > 0:
+            s = s / (1.0 - (1.0 - rho_used) * bprof)
+        cen, _ = _window_centroid(s, start.astype(float), half)
+        ok = np.isfinite(cen) & (peak >= min_snr * noise)
+        y_cur = np.where(ok, top + cen, y_cur)
+        if bprof is not None and it < n_pass - 1:
+            # raw signal mass and effective blackness in a window about the current centre
+            sig = max(width / 2.355, 0.7)
+            cc = np.nan_to_num(cen)[:, None]
+            win = np.clip(half + 0.5 - np.abs(idx - cc), 0.0, 1.0)
+            mass = (win * np.clip(s_raw, 0, None)).sum(1)
+            g = np.exp(-0.5 * ((idx - cc) / sig) ** 2) * win
+            b_eff = (g * bprof).sum(1) / np.maximum(g.sum(1), 1e-12)
+            use = ok & (prof.max(axis=1) < 254)  # saturated profiles lose signal mass
+            samples = (cols[use].astype(float), mass[use], b_eff[use])
+            if rho is None:
+                rho_used = reflectance_ratio([samples])
+    n = prof.shape[1]
+    yc = top + cen
+    ok = np.isfinite(cen) & (peak >= min_snr * noise) & (cen > half) & (cen < n - 1 - half)
+    xi, yi = cols[ok], yc[ok]
+    inmask = mask[np.clip(np.round(yi).astype(int), 0, H - 1), xi]
+    xi, yi, snr = xi[inmask], yi[inmask], (peak[ok] / noise)[inmask]
+    if xi.size < 5:
+        return None
+    return np.column_stack([xi.astype(float), yi]), snr, width, rho_used, samples
+
+
+def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                      min_contrast: float = 0.5) -> float | None:
+    """The stripe's black/white reflectance ratio ``rho`` from its brightness along the stripe.
+
+    Each element of ``samples`` is one stripe: column position ``x``, signal
+    mass of the column profile and the effective blackness ``b`` under it.
+    Model: ``log mass = p(x) + log(1 - (1 - rho) b)`` with a quadratic
+    ``p`` per stripe (range and incidence change slowly along it); ``rho``
+    by a grid search minimising the sum of absolute residuals (speckle and
+    albedo noise are heavy-tailed). None when the blackness under the
+    stripes spans less than ``min_contrast`` (the ratio is then not seen).
+    """
+    groups = [(x, m, b) for x, m, b in samples if x is not None and len(x) >= 10]
+    if not groups:
+        return None
+    ball = np.concatenate([b for _, _, b in groups])
+    if np.percentile(ball, 95) - np.percentile(ball, 5) < min_contrast:
+        return None
+    grid = np.linspace(0.02, 1.0, 99)
+    cost = np.zeros(len(grid))
+    for x, m, b in groups:
+        ok = m > 0
+        x, lm, b = x[ok], np.log(m[ok]), b[ok]
+        u = (x - x.mean()) / max(np.ptp(x), 1.0)
+        A = np.column_stack([np.ones_like(u), u, u * u])
+        pinv = np.linalg.pinv(A)
+        for i, r in enumerate(grid):
+            y = lm - np.log(1.0 - (1.0 - r) * b)
+            res = y - A @ (pinv @ y)
+            # one reweighting step towards an L1 fit
+            w = 1.0 / np.maximum(np.abs(res), 1e-3)
+            coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
+            cost[i] += np.abs(y - A @ coef).sum()
+    i = int(np.argmin(cost))
+    if 0 < i < len(grid) - 1:  # parabolic refinement
+        c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
+        den = c0 - 2 * c1 + c2
+        step = 0.5 * (c0 - c2) / den if den > 0 else 0.0
+        return float(grid[i] + np.clip(step, -1, 1) * (grid[1] - grid[0]))
+    return float(grid[i])
+
+
+def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of each profile (along axis 1)."""
+    r = int(np.ceil(3 * sigma))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k /= k.sum()
+    return cv2.filter2D(s.astype(np.float32), -1, k[None, :].astype(np.float32),
+                        borderType=cv2.BORDER_REPLICATE)
+
+
+def _fwhm(prof: np.ndarray, noise: float) -> float:
+    """Median full width at half maximum (px) of the profiles with a clear peak."""
+    base = np.median(prof, axis=1, keepdims=True)
+    s = prof - base
+    pk = s.max(axis=1)
+    good = pk > 8 * noise
+    if good.sum() < 3:
+        return 3.0
+    above = s[good] > 0.5 * pk[good, None]
+    widths = above.sum(axis=1)
+    return float(np.clip(np.median(widths), 1.0, 30.0))
+
+
+def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
+                     k: float = 3.5, iters: int = 5) -> tuple[np.ndarray, float]:
+    """Inlier mask of stripe centres against a smooth curve, and the inliers' rms (px)."""
+    n = len(pts)
+    keep = np.ones(n, bool)
+    if n < 5:
+        return keep, float("nan")
+    if camera is not None:
+        xy = undistort_pixels(camera, pts)
+        f = float(np.mean(np.diag(camera.K)[:2]))
+        keep &= np.all(np.isfinite(xy), axis=1)
+    else:
+        xy, f = pts, 1.0
+    r = np.zeros(n)
+    for _ in range(iters):
+        if keep.sum() < 5:
+            break
+        if camera is not None:
+            c = xy[keep].mean(0)
+            _, _, vt = np.linalg.svd(xy[keep] - c, full_matrices=False)
+            r = ((xy - c) @ vt[1]) * f
+        else:
+            c = pts[keep].mean(0)
+            _, _, vt = np.linalg.svd(pts[keep] - c, full_matrices=False)
+            u, v = (pts - c) @ vt[0], (pts - c) @ vt[1]
+            A = np.column_stack([np.ones(n), u, u * u])
+            coef, *_ = np.linalg.lstsq(A[keep], v[keep], rcond=None)
+            r = v - A @ coef
+        sig = MAD_TO_SIGMA * np.median(np.abs(r[keep] - np.median(r[keep])))
+        new = np.isfinite(r) & (np.abs(r) <= max(k * sig, 0.05))
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    rms = float(np.sqrt(np.mean(r[keep] ** 2))) if keep.any() else float("nan")
+    return keep, rms
+
+
+def stripe_points_3d(camera: CameraModel, centres_px: np.ndarray, plane: Plane) -> np.ndarray:
+    """3D stripe points (N, 3), mm: rays through the centres meet that board's plane (eq. 5)."""
+    return backproject_to_plane(camera, centres_px, plane)
+
+
+@dataclass(frozen=True)
+class CameraLines:
+    """The camera side of one position (section 1.3).
+
+    ``laser_plane`` is the total-least-squares fit of eq. (4) to both boards'
+    stripe points; ``laser_plane_algebraic`` the paper's ``ax + by + cz = 1``
+    least squares, for comparison; ``laser_plane_lines`` the plane through
+    the two stripe lines fitted in their board planes (beyond the paper).
+    ``E`` (3,) = Pi_1 ^ Pi_2 ^ Pi_L, mm. ``l[k]`` is the unit direction of
+    the stripe on board ``k`` (``n_k x n_L``), oriented from ``E`` towards
+    that stripe's points; ``alpha = arccos(l0 . l1)``, rad.
+    ``residual_rms_mm`` is the rms distance of the stripe points to
+    ``laser_plane``; ``rho`` the stripe's black/white reflectance ratio used
+    to correct the centres (None: no correction).
+    """
+
+    laser_plane: Plane
+    laser_plane_algebraic: Plane
+    E: np.ndarray
+    l: np.ndarray  # (2, 3)
+    alpha: float
+    centres_px: tuple[np.ndarray, np.ndarray]
+    points_3d: tuple[np.ndarray, np.ndarray]
+    residual_rms_mm: float
+    board_planes: tuple[Plane, Plane]
+    laser_plane_lines: Plane | None = None
+    rho: float | None = None
+
+    @property
+    def alpha_deg(self) -> float:
+        return float(np.degrees(self.alpha))
+
+
+def laser_plane_from_lines(points: tuple[np.ndarray, np.ndarray],
+                           planes: tuple[Plane, Plane]) -> Plane:
+    """Laser plane through the two 3D stripe lines (beyond the paper).
+
+    Each stripe is fitted as a line inside its own board plane (TLS on the
+    points projected onto the plane); the laser plane is then the TLS plane
+    of the two fitted lines, each sampled over the extent of its points and
+    weighted by its point count.
+    """
+    samples, weights = [], []
+    for P, pl in zip(points, planes):
+        Q = pl.project(P)
+        c = Q.mean(0)
+        _, _, vt = np.linalg.svd(Q - c, full_matrices=False)
+        d = vt[0]
+        t = (Q - c) @ d
+        ts = np.linspace(t.min(), t.max(), 9)
+        samples.append(c + ts[:, None] * d)
+        weights.append(np.full(9, len(P) / 9.0))
+    return fit_plane(np.vstack(samples), np.concatenate(weights))
+
+
+def _board_inputs(img: np.ndarray, boards: tuple[BoardView, BoardView], albedo: bool):
+    masks = [b.mask(img.shape) for b in boards]
+    blks = [b.blackness_map(img.shape) if albedo else None for b in boards]
+    return masks, blks
+
+
+def estimate_reflectance_ratio(camera: CameraModel, stripe_images: list[np.ndarray],
+                               boards: tuple[BoardView, BoardView],
+                               min_snr: float = 8.0) -> float | None:
+    """The stripe's black/white reflectance ratio from several stripe images at once.
+
+    A property of the board and the laser, the same at every position: pooling
+    positions sees the stripe on pure white and pure black squares even when
+    at some position it runs along a square edge. None without blackness maps
+    or contrast.
+    """
+    samples = []
+    for img in stripe_images:
+        img = np.asarray(img)
+        masks, blks = _board_inputs(img, boards, True)
+        for m, b in zip(masks, blks):
+            if b is None:
+                return None
+            _, info = stripe_centres(img, m, camera, min_snr, b, rho=1.0, return_info=True)
+            if info.get("samples") is not None:
+                samples.append(info["samples"])
+    return reflectance_ratio(samples)
+
+
+def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
+                 boards: tuple[BoardView, BoardView], use_pnp: bool = False,
+                 min_snr: float = 8.0, rho: float | None = None,
+                 albedo_correction: bool = True) -> CameraLines:
+    """Laser plane (eq. 4), E, l1, l2 and alpha from one stripe image (section 1.3).
+
+    ``use_pnp`` takes the board planes from ``cv2.solvePnP`` instead of the
+    homography (eqs. 2-3). With ``albedo_correction`` (and boards found by
+    :func:`lidarcal.board.find_v_boards`, which carry blackness maps) the
+    stripe centres are corrected for the squares' reflectance
+    (:func:`stripe_centres`); ``rho`` is then the stripe's black/white
+    reflectance ratio, estimated from this image's two stripes when not
+    given (better: once per dataset with :func:`estimate_reflectance_ratio`).
+
+    Raises
+    ------
+    ValueError
+        When a board shows fewer than 10 stripe centres (the caller names the file).
+    """
+    img = np.asarray(stripe_image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    planes = tuple(b.plane_pnp if use_pnp else b.plane for b in boards)
+    masks, blks = _board_inputs(img, boards, albedo_correction)
+    use_albedo = all(b is not None for b in blks)
+    if not use_albedo:
+        blks, rho = [None, None], None
+    elif rho is None:
+        samples = []
+        for m, b in zip(masks, blks):
+            _, info = stripe_centres(img, m, camera, min_snr, b, rho=1.0, return_info=True)
+            if info.get("samples") is not None:
+                samples.append(info["samples"])
+        rho = reflectance_ratio(samples)
+        if rho is None:
+            rho = 1.0  # not seen in this image: no division (background still uses blackness)
+    centres, pts = [], []
+    for k in range(2):
+        c = stripe_centres(img, masks[k], camera, min_snr, blks[k], rho=rho)
+        if len(c) < 10:
+            raise ValueError(f"board {k}: found {len(c)} laser-stripe points, need at least 10; "
+                             "is the stripe on both boards and bright enough?")
+        centres.append(c)
+        pts.append(stripe_points_3d(camera, c, planes[k]))
+    allp = np.vstack(pts)
+    laser = fit_plane(allp)
+    laser_alg = fit_plane_algebraic(allp)
+    laser_lines = laser_plane_from_lines((pts[0], pts[1]), planes)
+    E = intersect_planes(planes[0], planes[1], laser)
+    ls = []
+    for k in range(2):
+        lk = unit(np.cross(planes[k].normal, laser.normal))
+        if (pts[k].mean(0) - E) @ lk < 0:
+            lk = -lk
+        ls.append(lk)
+    l = np.vstack(ls)
+    alpha = float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
+    rms = float(np.sqrt(np.mean(laser.distance(allp) ** 2)))
+    return CameraLines(laser, laser_alg, E, l, alpha, (centres[0], centres[1]), (pts[0], pts[1]),
+                       rms, (planes[0], planes[1]), laser_lines, rho)
