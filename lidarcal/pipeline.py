@@ -29,7 +29,7 @@ from .dataset import (CALIBRATION_FORMAT, MEASUREMENTS_FORMAT, CameraModel, Data
 from .geometry import Pose
 from .pose import single_shot_pose
 from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
-from .stripe import CameraLines, camera_lines
+from .stripe import CameraLines, camera_lines, estimate_reflectance_ratio
 from .turntable import fit_paper, fit_rigid
 
 MIN_POSITIONS = 3
@@ -86,11 +86,14 @@ class CalibrationResult:
 
 
 def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView, BoardView],
-                    lidar: LidarSpec, image_size: tuple[int, int]) -> PositionResult:
-    """Paper section 1 at one position: stripe lines (1.3), scan lines (1.4), pose (1.5)."""
-    img = read_image(pos.stripe_image, image_size)
+                    lidar: LidarSpec, rho: float | None) -> PositionResult:
+    """Paper section 1 at one position: stripe lines (1.3), scan lines (1.4), pose (1.5).
+
+    ``rho`` is the stripe's black/white reflectance ratio on the boards (one per dataset).
+    """
+    img = read_image(pos.stripe_image, camera.image_size)
     try:
-        cl = camera_lines(camera, img, boards)
+        cl = camera_lines(camera, img, boards, rho=rho)
     except ValueError as e:
         raise DatasetError(pos.stripe_image, f"{e}; check this position or drop it with "
                                              f"--skip {pos.index}") from None
@@ -123,6 +126,22 @@ def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
     return res.camera, res
 
 
+def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, BoardView],
+                              positions: list[Position], n_images: int = 5) -> float | None:
+    """The stripe's black/white reflectance ratio, pooled over a few positions spread over the
+    sweep (a property of board and laser, the same at every position; see
+    :func:`lidarcal.stripe.estimate_reflectance_ratio`). None when it cannot be seen; unreadable
+    images are left to the per-position step, which reports them."""
+    picks = sorted({round(k) for k in np.linspace(0, len(positions) - 1, min(n_images, len(positions)))})
+    images = []
+    for k in picks:
+        try:
+            images.append(read_image(positions[k].stripe_image, camera.image_size))
+        except DatasetError:
+            continue
+    return estimate_reflectance_ratio(camera, images, boards) if images else None
+
+
 def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]:
     """Both chessboards of the V in ``board.png`` (section 1.2)."""
     img = read_image(ds.board_image, camera.image_size)
@@ -144,7 +163,8 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     todo = [p for p in ds.positions if p.index not in skip]
     skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
     warnings: list[str] = []
-    jobs = [(p, camera, boards, ds.lidar, camera.image_size) for p in todo]
+    rho = dataset_reflectance_ratio(camera, boards, todo)
+    jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
     workers = workers or min(2, os.cpu_count() or 1)
     if workers > 1 and len(jobs) > 4:
         with ProcessPoolExecutor(max_workers=workers) as ex:
