@@ -22,10 +22,17 @@ test: $(STAMP)
 
 report: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/lidarcal calibrate $(DATA) --out $(OUT)
-	@echo "results in $(OUT)/"
+	MPLBACKEND=Agg $(BIN)/lidarcal measure $(DATA) --calibration $(OUT)/calibration.json --out $(OUT)
+	MPLBACKEND=Agg $(BIN)/lidarcal report $(DATA) --calibration $(OUT)/calibration.json \
+		--measurements $(OUT)/measurements.json --out reports/calibration-report.pdf
+	MPLBACKEND=Agg $(BIN)/python scripts/workbook.py notebooks reports/workbook.pdf
+	@echo "wrote reports/calibration-report.pdf and reports/workbook.pdf"
 
 data: $(STAMP)
 	$(BIN)/lidarcal simulate $(DATA) --seed 0 --rig paper --overwrite
+
+study: $(STAMP)
+	$(BIN)/python -m lidarcal.study --full reports/study.csv
 
 bench: $(STAMP)
 	$(BIN)/python scripts/bench.py $(DATA)

@@ -564,7 +564,11 @@ def model_from_dict(d: dict) -> PaperModel | RigidModel:
         return PaperModel.from_dict(d)
     if kind == "rigid":
         return RigidModel.from_dict(d)
-    raise ValueError(f"Unknown pose-function type {kind!r}, expected 'paper' or 'rigid'")
+    if kind == "joint":
+        from .joint import JointModel  # lazy: joint imports this module
+
+        return JointModel.from_dict(d)
+    raise ValueError(f"Unknown pose-function type {kind!r}, expected 'paper', 'rigid' or 'joint'")
 
 
 def table1(model: PoseFunction, psi_deg, samples: Sequence[Pose]) -> pd.DataFrame:
