@@ -292,9 +292,14 @@ def board_blackness(image: np.ndarray, camera: CameraModel, view: BoardView, boa
     xs, ys = view.outline_px[:, 0], view.outline_px[:, 1]
     x0, y0 = int(max(np.floor(xs.min()) - pad_px, 0)), int(max(np.floor(ys.min()) - pad_px, 0))
     x1, y1 = int(min(np.ceil(xs.max()) + pad_px + 1, W)), int(min(np.ceil(ys.max()) + pad_px + 1, H))
-    gy, gx = np.mgrid[y0:y1, x0:x1]
-    A = _poly2(np.stack([gx, gy], axis=-1).astype(float), scale, centre)
-    Wl, Bl = A @ cw, A @ cb
+    # the two quadratic level fields on the crop's grid (separable: no (h, w, 6) design matrix)
+    qx = ((np.arange(x0, x1) - centre[0]) / scale[0])[None, :]
+    qy = ((np.arange(y0, y1) - centre[1]) / scale[1])[:, None]
+
+    def field(cf: np.ndarray) -> np.ndarray:
+        return (cf[0] + cf[1] * qx + cf[3] * qx * qx) + qy * (cf[2] + cf[4] * qx) + cf[5] * qy * qy
+
+    Wl, Bl = field(cw), field(cb)
     with np.errstate(invalid="ignore", divide="ignore"):
         blk = (Wl - img[y0:y1, x0:x1]) / np.maximum(Wl - Bl, 1e-3)
     ratio = float(np.median(vals[b]) / max(np.median(vals[a]), 1e-6))
@@ -339,7 +344,7 @@ def find_v_boards(image: np.ndarray, board: BoardSpec,
     views: list[BoardView] = []
     work = img
     for k in range(2):
-        corners = detect_chessboard(work, board.pattern_size)
+        corners = detect_chessboard(work, board.pattern_size, downscale=0.5)
         if corners is None:
             corners = detect_chessboard(work, board.pattern_size, exhaustive=True)
         if corners is None:

@@ -29,7 +29,8 @@ from .dataset import (CALIBRATION_FORMAT, MEASUREMENTS_FORMAT, CameraModel, Data
 from .geometry import Pose
 from .pose import single_shot_pose
 from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
-from .stripe import CameraLines, camera_lines, estimate_reflectance_ratio
+from .stripe import (CameraLines, camera_lines, estimate_reflectance_ratio, reflectance_ratio,
+                     reflectance_samples)
 from .turntable import fit_paper, fit_rigid
 
 MIN_POSITIONS = 3
@@ -116,6 +117,30 @@ def _solve_safe(args) -> PositionResult | DatasetError:
         return e
 
 
+# per-worker constants of a run (camera, boards with their blackness maps, LiDAR spec), set
+# once by the pool initializer instead of being pickled with every task
+_WORKER: dict = {}
+
+
+def _init_worker(camera: CameraModel, boards: tuple[BoardView, BoardView],
+                 lidar: LidarSpec) -> None:
+    _WORKER.update(camera=camera, boards=boards, lidar=lidar)
+
+
+def _solve_task(task: tuple[Position, float | None]) -> PositionResult | DatasetError:
+    pos, rho = task
+    return _solve_safe((pos, _WORKER["camera"], _WORKER["boards"], _WORKER["lidar"], rho))
+
+
+def _rho_samples_task(pos: Position) -> list:
+    """Reflectance samples of one stripe image (for :func:`dataset_reflectance_ratio`)."""
+    try:
+        img = read_image(pos.stripe_image, _WORKER["camera"].image_size)
+    except DatasetError:
+        return []  # unreadable: left to the per-position step, which reports it
+    return reflectance_samples(_WORKER["camera"], img, _WORKER["boards"])
+
+
 def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
     """The stored camera of dataset.json when present, else one calibrated from ``intrinsics/``."""
     if ds.camera is not None:
@@ -132,14 +157,21 @@ def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, Boar
     sweep (a property of board and laser, the same at every position; see
     :func:`lidarcal.stripe.estimate_reflectance_ratio`). None when it cannot be seen; unreadable
     images are left to the per-position step, which reports them."""
-    picks = sorted({round(k) for k in np.linspace(0, len(positions) - 1, min(n_images, len(positions)))})
     images = []
-    for k in picks:
+    for k in _rho_picks(positions, n_images):
         try:
             images.append(read_image(positions[k].stripe_image, camera.image_size))
         except DatasetError:
             continue
     return estimate_reflectance_ratio(camera, images, boards) if images else None
+
+
+def _rho_picks(positions: list[Position], n_images: int = 5) -> list[int]:
+    """Indices of the positions spread over the sweep that the reflectance ratio is pooled from."""
+    if not positions:
+        return []
+    ks = np.linspace(0, len(positions) - 1, min(n_images, len(positions)))
+    return sorted({round(k) for k in ks})
 
 
 def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]:
@@ -163,13 +195,22 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     todo = [p for p in ds.positions if p.index not in skip]
     skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
     warnings: list[str] = []
-    rho = dataset_reflectance_ratio(camera, boards, todo)
-    jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
     workers = workers or min(2, os.cpu_count() or 1)
-    if workers > 1 and len(jobs) > 4:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            outcomes = list(_progress(ex.map(_solve_safe, jobs, chunksize=4), len(jobs), progress))
+    if workers > 1 and len(todo) > 4:
+        # camera, boards and LiDAR spec go to each worker once (initializer), not with each task
+        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
+                                 initargs=(camera, boards, ds.lidar)) as ex:
+            picks = [todo[k] for k in _rho_picks(todo)]
+            got = list(ex.map(_rho_samples_task, picks))
+            samples = [s for ss in got if ss for s in ss]
+            rho = None if any(ss is None for ss in got) or not samples else \
+                reflectance_ratio(samples)
+            chunk = max(1, min(2, len(todo) // (4 * workers)))  # small: little tail imbalance
+            outcomes = list(_progress(ex.map(_solve_task, [(p, rho) for p in todo],
+                                             chunksize=chunk), len(todo), progress))
     else:
+        rho = dataset_reflectance_ratio(camera, boards, todo)
+        jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
         outcomes = [_solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
     results: list[PositionResult] = []
     for pos, out in zip(todo, outcomes):

@@ -186,19 +186,19 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
     """
     n = len(p)
     best = np.ones(n, bool)
-    best_count = -1
     if n > 3:
-        for _ in range(trials):
-            i, j = rng.choice(n, 2, replace=False)
-            d = p[j] - p[i]
-            ln = np.hypot(*d)
-            if ln == 0:
-                continue
-            nrm = np.array([-d[1], d[0]]) / ln
-            inl = np.abs((p - p[i]) @ nrm) <= k * sigma
-            c = int(inl.sum())
-            if c > best_count:
-                best, best_count = inl, c
+        # all hypotheses at once: pairs of distinct points, their line normals, inlier counts
+        i = rng.integers(n, size=trials)
+        j = (i + rng.integers(1, n, size=trials)) % n
+        d = p[j] - p[i]
+        ln = np.hypot(d[:, 0], d[:, 1])
+        good = ln > 0
+        if good.any():
+            i, d, ln = i[good], d[good], ln[good]
+            nrm = np.column_stack([-d[:, 1], d[:, 0]]) / ln[:, None]
+            off = np.einsum("ij,ij->i", p[i], nrm)
+            inl = np.abs(p @ nrm.T - off) <= k * sigma  # (n, hypotheses)
+            best = inl[:, int(np.argmax(inl.sum(0)))]
     mask = best
     line = fit_line_2d(p[mask]) if mask.sum() >= 2 else fit_line_2d(p)
     scale = sigma

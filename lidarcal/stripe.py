@@ -24,10 +24,45 @@ from .geometry import Plane, fit_plane, fit_plane_algebraic, intersect_planes, u
 MAD_TO_SIGMA = 1.4826
 
 
-def _noise_sigma(img: np.ndarray, mask: np.ndarray) -> float:
-    """Robust sensor-noise sigma (DN) from horizontal pixel differences inside ``mask``."""
-    d = np.diff(img[::2], axis=1)  # every other row is plenty for a MAD
+def _hist_percentile(hist: np.ndarray, q: float) -> float:
+    """``np.percentile`` (linear interpolation) of the integers ``0..len(hist)-1`` counted in
+    ``hist`` (value ``k`` occurs ``hist[k]`` times)."""
+    cum = np.cumsum(hist)
+    pos = (cum[-1] - 1) * q / 100.0
+    lo, hi = int(np.floor(pos)), int(np.ceil(pos))
+    a, b = np.searchsorted(cum, [lo, hi], side="right").astype(float)
+    return float(a + (b - a) * (pos - lo))
+
+
+def _int_percentile(v: np.ndarray, q: float) -> float:
+    """``np.percentile(v, q)`` (linear interpolation) of non-negative integers, in O(n)."""
+    if v.dtype == np.uint8:
+        hist = cv2.calcHist([np.ascontiguousarray(v).reshape(-1, 1)], [0], None, [256], [0, 256])
+        return _hist_percentile(hist.ravel().astype(np.int64), q)
+    return _hist_percentile(np.bincount(v.ravel()), q)
+
+
+def _noise_sigma(img: np.ndarray, mask: np.ndarray, raw8: np.ndarray | None = None) -> float:
+    """Robust sensor-noise sigma (DN) from horizontal pixel differences inside ``mask``.
+
+    ``raw8``: the same image as uint8; the medians are then taken exactly from a
+    histogram of the (integer) differences, in O(n).
+    """
     m = mask[::2, 1:] & mask[::2, :-1]
+    if raw8 is not None:
+        a = raw8[::2]
+        key = a[:, 1:].astype(np.uint16) + np.uint16(256) - a[:, :-1]  # d + 256, in 1..511
+        if np.count_nonzero(m) >= 10:
+            key *= m  # 0 = outside the mask
+        hist = cv2.calcHist([key], [0], None, [512], [0, 512]).ravel().astype(np.int64)[1:]
+        if hist.sum() == 0:
+            return 0.5
+        med2 = round(2 * _hist_percentile(hist, 50.0)) - 510  # 2 x median, an integer
+        # histogram of 2 |d - median| folded from the one of d
+        dev = np.abs(2 * (np.arange(511) - 255) - med2)
+        mad = _hist_percentile(np.bincount(dev, weights=hist).astype(np.int64), 50.0) / 2.0
+        return float(max(MAD_TO_SIGMA * mad / np.sqrt(2.0), 0.5))
+    d = np.diff(img[::2], axis=1)  # every other row is plenty for a MAD
     v = d[m]
     if v.size < 10:
         v = d.ravel()
@@ -35,24 +70,48 @@ def _noise_sigma(img: np.ndarray, mask: np.ndarray) -> float:
     return float(max(MAD_TO_SIGMA * mad / np.sqrt(2.0), 0.5))
 
 
-def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float
-                 ) -> tuple[np.ndarray, np.ndarray] | None:
+def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
+                 raw8: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Rough stripe line (point, unit direction) in pixels from the brightest pixels, or None.
 
     Pixels well above the local background (a wide median along both axes)
     are fitted by PCA, with two rounds of rejection by the median absolute
-    perpendicular residual.
+    perpendicular residual. With ``raw8`` (the image as uint8) this is done
+    in 8 bits on the image halved (``INTER_AREA``) first, and at full
+    resolution only when that finds no line: the line only guides the
+    column windows of :func:`_centres_by_column`, which re-centre on the stripe.
     """
-    sm = cv2.GaussianBlur(img, (0, 0), 1.5)
+    if raw8 is not None and min(raw8.shape) >= 64:
+        h, w = raw8.shape[0] // 2, raw8.shape[1] // 2
+        small = cv2.resize(raw8[:2 * h, :2 * w], (w, h), interpolation=cv2.INTER_AREA)
+        msmall = mask[:2 * h:2, :2 * w:2] & mask[1:2 * h:2, 1:2 * w:2]
+        found = _bright_line(cv2.GaussianBlur(small, (0, 0), 0.75), msmall, noise, scale=2.0)
+        if found is not None:
+            return found
+    if raw8 is not None:
+        return _bright_line(cv2.GaussianBlur(raw8, (0, 0), 1.5), mask, noise)
+    return _bright_line(cv2.GaussianBlur(img, (0, 0), 1.5), mask, noise)
+
+
+def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 1.0
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+    """PCA line of the pixels of a smoothed image ``sm`` well above its background, in
+    full-resolution pixels (``sm`` is the image reduced by ``scale``)."""
     vals = sm[mask]
     if vals.size < 20:
         return None
-    base = np.median(vals[::7])
-    peak = np.percentile(vals, 99.9)
+    if sm.dtype == np.uint8:
+        base = _int_percentile(vals[::7], 50.0)
+        peak = _int_percentile(vals, 99.9)
+    else:
+        base = np.median(vals[::7])
+        peak = np.percentile(vals, 99.9)
     thr = base + max(0.35 * (peak - base), 6.0 * noise)
     ys, xs = np.nonzero(mask & (sm > thr))
     if xs.size < 10:
         return None
+    if scale != 1.0:
+        xs, ys = scale * xs + 0.5 * (scale - 1), scale * ys + 0.5 * (scale - 1)
     P = np.column_stack([xs, ys]).astype(float)
     keep = np.ones(len(P), bool)
     for _ in range(3):
@@ -68,26 +127,33 @@ def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float
     return c, t
 
 
-def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: int = 6
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: int = 6,
+                     tol: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
     """Iterated centroid of background-free profiles (M, W) in a window ``start +- half``.
 
     Returns centres (profile index units) and the summed signal in the window.
     Symmetric windows make the fixed point the centre of a symmetric stripe
-    profile, including one clipped at saturation.
+    profile, including one clipped at saturation. Stops early once no centre
+    moves by more than ``tol`` px.
     """
     idx = np.arange(prof.shape[1])[None, :]
     c = start.astype(float).copy()
     s = np.clip(prof, 0, None)
     mass = np.zeros(len(c))
+    act = np.arange(len(c))  # rows still moving; converged rows are left alone
     for _ in range(iters):
         # fractional weights at the window edges keep the centroid continuous in c
-        w = np.clip(half + 0.5 - np.abs(idx - c[:, None]), 0.0, 1.0)
-        ws = w * s
-        mass = ws.sum(1)
+        w = np.clip(half + 0.5 - np.abs(idx - c[act, None]), 0.0, 1.0)
+        ws = w * s[act]
+        m = ws.sum(1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            c_new = (ws * idx).sum(1) / mass
-        c = np.where(mass > 0, c_new, np.nan)
+            c_new = (ws * idx).sum(1) / m
+        c_new = np.where(m > 0, c_new, np.nan)
+        moving = np.abs(c_new - c[act]) > tol  # False for NaN: such rows stay NaN
+        c[act], mass[act] = c_new, m
+        act = act[moving]
+        if act.size == 0:
+            break
     return c, mass
 
 
@@ -98,7 +164,7 @@ def _profiles(img: np.ndarray, xs: np.ndarray, y0: np.ndarray, L: int) -> tuple[
     top = np.clip(np.round(y0).astype(int) - L, 0, max(H - 2 * L - 1, 0))
     rows = top[:, None] + np.arange(2 * L + 1)[None, :]
     rows = np.clip(rows, 0, H - 1)
-    return img[rows, xs[:, None]], top
+    return img[rows, xs[:, None]].astype(np.float32, copy=False), top
 
 
 def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | None = None,
@@ -136,29 +202,60 @@ def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | No
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    img = img.astype(np.float32)
     mask = np.asarray(mask, bool)
     if mask.shape != img.shape:
         raise ValueError(f"mask shape {mask.shape} differs from image shape {img.shape}")
     if blackness is not None and np.shape(blackness) != img.shape:
         raise ValueError(f"blackness shape {np.shape(blackness)} differs from image shape "
                          f"{img.shape}")
-    empty = (np.empty((0, 2)), {"snr": np.empty(0), "n_rejected": 0, "rho": None,
-                                "samples": None}) if return_info else np.empty((0, 2))
     if not mask.any():
-        return empty
+        return _empty(return_info)
+    y_lo, y_hi, x_lo, x_hi = _crop_box(mask, img.shape)
+    bsub = None if blackness is None else np.asarray(blackness)[y_lo:y_hi, x_lo:x_hi]
+    return _centres_in_crop(img[y_lo:y_hi, x_lo:x_hi], mask[y_lo:y_hi, x_lo:x_hi], bsub,
+                            (x_lo, y_lo), camera, min_snr, rho, return_info, return_info)
+
+
+_CROP_PAD = 40  # px around a mask's bounding box: room for the background windows
+
+
+def _empty(return_info: bool):
+    pts = np.empty((0, 2))
+    return (pts, {"snr": np.empty(0), "n_rejected": 0, "rho": None, "samples": None}) \
+        if return_info else pts
+
+
+def _crop_box(mask: np.ndarray, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
+    """``(y_lo, y_hi, x_lo, x_hi)``: bounding box of ``mask`` plus ``_CROP_PAD``, in the image."""
     ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     y_lo, y_hi, x_lo, x_hi = ys[0], ys[-1] + 1, xs[0], xs[-1] + 1
-    pad = 40
-    y_lo, x_lo = max(y_lo - pad, 0), max(x_lo - pad, 0)
-    y_hi, x_hi = min(y_hi + pad, img.shape[0]), min(x_hi + pad, img.shape[1])
-    sub, msub = img[y_lo:y_hi, x_lo:x_hi], mask[y_lo:y_hi, x_lo:x_hi]
-    bsub = None if blackness is None else \
-        np.nan_to_num(np.asarray(blackness, np.float32)[y_lo:y_hi, x_lo:x_hi], nan=0.0)
-    noise = _noise_sigma(sub, msub)
-    coarse = _coarse_line(sub, msub, noise)
+    return (max(y_lo - _CROP_PAD, 0), min(y_hi + _CROP_PAD, shape[0]),
+            max(x_lo - _CROP_PAD, 0), min(x_hi + _CROP_PAD, shape[1]))
+
+
+def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
+                     origin: tuple[int, int], camera: CameraModel | None, min_snr: float,
+                     rho: float | None, return_info: bool, want_samples: bool,
+                     clean: bool = False):
+    """:func:`stripe_centres` on a crop (origin ``(x0, y0)`` in the image) holding the mask.
+
+    ``clean``: ``bsub`` is already finite float32 (from :func:`_board_crop`)."""
+    x_lo, y_lo = origin
+    sub = np.asarray(sub)
+    raw8 = sub if sub.dtype == np.uint8 else None
+    if raw8 is None:
+        sub = sub.astype(np.float32)
+    # (uint8 crops stay uint8: profiles are gathered from them and then converted)
+    if bsub is not None and not clean:
+        bsub = np.asarray(bsub, np.float32)
+        if not np.isfinite(bsub).all():
+            bsub = np.nan_to_num(bsub, nan=0.0)
+    if not msub.any():
+        return _empty(return_info)
+    noise = _noise_sigma(sub, msub, raw8)
+    coarse = _coarse_line(sub, msub, noise, raw8)
     if coarse is None:
-        return empty
+        return _empty(return_info)
     c0, t0 = coarse
     transpose = abs(t0[0]) < abs(t0[1])
     if transpose:  # sample by rows: swap axes, solve as by columns, swap back
@@ -167,17 +264,30 @@ def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | No
         c0, t0 = c0[::-1], t0[::-1]
     slope = t0[1] / t0[0]
     res = _centres_by_column(np.ascontiguousarray(sub), msub, c0, slope, noise, min_snr,
-                             None if bsub is None else np.ascontiguousarray(bsub), rho)
+                             None if bsub is None else np.ascontiguousarray(bsub), rho,
+                             want_samples=want_samples or rho is None)
     if res is None:
-        return empty
+        return _empty(return_info)
     pts, snr, width, rho_used, samples = res
     if transpose:
         pts = pts[:, ::-1]
     pts = pts + np.array([x_lo, y_lo], float)
     keep, fit_rms = _reject_outliers(pts, camera)
+    if not return_info:
+        return pts[keep]
     info = {"snr": snr[keep], "width_px": width, "noise_dn": noise, "rho": rho_used,
             "fit_rms_px": fit_rms, "n_rejected": int((~keep).sum()), "samples": samples}
-    return (pts[keep], info) if return_info else pts[keep]
+    return pts[keep], info
+
+
+def _row_median(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=1)`` for finite data, by one partition."""
+    n = a.shape[1]
+    k = n // 2
+    if n % 2:
+        return np.partition(a, k, axis=1)[:, k]
+    p = np.partition(a, [k - 1, k], axis=1)
+    return 0.5 * (p[:, k - 1] + p[:, k])
 
 
 def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
@@ -189,15 +299,15 @@ def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
     """
     n = prof.shape[1]
     third = max(n // 3, 2)
-    left = np.median(prof[:, :third], axis=1)
-    right = np.median(prof[:, -third:], axis=1)
+    left = _row_median(prof[:, :third])
+    right = _row_median(prof[:, -third:])
     xl, xr = (third - 1) / 2.0, n - 1 - (third - 1) / 2.0
     k = np.arange(n)[None, :]
     bg = left[:, None] + (right - left)[:, None] * (k - xl) / (xr - xl)
     if bprof is None:
         return bg
-    bl = np.median(bprof[:, :third], axis=1)
-    br = np.median(bprof[:, -third:], axis=1)
+    bl = _row_median(bprof[:, :third])
+    br = _row_median(bprof[:, -third:])
     db = br - bl
     step = np.abs(db) > 0.3
     if np.any(step):
@@ -209,7 +319,7 @@ def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
 
 def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope: float,
                        noise: float, min_snr: float, blk: np.ndarray | None = None,
-                       rho: float | None = None):
+                       rho: float | None = None, want_samples: bool = True):
     """Column-wise centres; returns (points (N, 2), snr, width, rho used, samples) or None."""
     cols = np.nonzero(mask.any(axis=0))[0]
     if cols.size < 5:
@@ -245,7 +355,7 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
         cen, _ = _window_centroid(s, start.astype(float), half)
         ok = np.isfinite(cen) & (peak >= min_snr * noise)
         y_cur = np.where(ok, top + cen, y_cur)
-        if bprof is not None and it < n_pass - 1:
+        if bprof is not None and it < n_pass - 1 and want_samples:
             # raw signal mass and effective blackness in a window about the current centre
             sig = max(width / 2.355, 0.7)
             cc = np.nan_to_num(cen)[:, None]
@@ -294,13 +404,15 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
         u = (x - x.mean()) / max(np.ptp(x), 1.0)
         A = np.column_stack([np.ones_like(u), u, u * u])
         pinv = np.linalg.pinv(A)
-        for i, r in enumerate(grid):
-            y = lm - np.log(1.0 - (1.0 - r) * b)
-            res = y - A @ (pinv @ y)
-            # one reweighting step towards an L1 fit
-            w = 1.0 / np.maximum(np.abs(res), 1e-3)
-            coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
-            cost[i] += np.abs(y - A @ coef).sum()
+        # all grid values at once: column g of Y is the model's left side for rho = grid[g]
+        Y = lm[:, None] - np.log(1.0 - (1.0 - grid)[None, :] * b[:, None])
+        res = Y - A @ (pinv @ Y)
+        # one reweighting step towards an L1 fit (weighted normal equations, 3 x 3 per column)
+        w = 1.0 / np.maximum(np.abs(res), 1e-3)
+        M = np.einsum("ni,nj,ng->gij", A, A, w)
+        rhs = np.einsum("ni,ng->gi", A, w * Y)
+        coef = np.linalg.solve(M, rhs[:, :, None])[:, :, 0]
+        cost += np.abs(Y - A @ coef.T).sum(0)
     i = int(np.argmin(cost))
     if 0 < i < len(grid) - 1:  # parabolic refinement
         c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
@@ -429,10 +541,75 @@ def laser_plane_from_lines(points: tuple[np.ndarray, np.ndarray],
     return fit_plane(np.vstack(samples), np.concatenate(weights))
 
 
+_CROP_CACHE: list = []  # [(board, shape, albedo, geometry)]: the same boards serve every image
+
+
+def _board_crop(img: np.ndarray, board: BoardView, albedo: bool):
+    """The crop of ``img`` around one board's outline that :func:`stripe_centres` would use
+    with the full mask ``board.mask``: (image crop, mask crop, blackness crop or None, origin).
+
+    Only the crop is rasterised and sliced (no full-size mask or blackness map); the
+    mask and blackness crops depend on the board alone and are kept for the next image.
+    """
+    key = (img.shape[:2], albedo)
+    for b, k, geo in _CROP_CACHE:
+        if b is board and k == key:
+            break
+    else:
+        geo = _board_crop_geometry(img.shape[:2], board, albedo)
+        _CROP_CACHE.insert(0, (board, key, geo))
+        del _CROP_CACHE[4:]
+    if geo is None:
+        return None
+    msub, bsub, (x_lo, y_lo) = geo
+    h, w = msub.shape
+    return img[y_lo:y_lo + h, x_lo:x_lo + w], msub, bsub, (x_lo, y_lo)
+
+
+def _board_crop_geometry(shape: tuple[int, int], board: BoardView, albedo: bool):
+    """Mask crop, blackness crop (finite, float32) or None, and origin for :func:`_board_crop`."""
+    H, W = shape
+    poly = np.round(board.outline_px).astype(np.int32)
+    bx0, by0 = np.clip(poly.min(0), 0, [W - 1, H - 1])
+    bx1, by1 = np.clip(poly.max(0) + 1, 1, [W, H])
+    small = np.zeros((by1 - by0, bx1 - bx0), np.uint8)
+    cv2.fillPoly(small, [poly], 1, offset=(-int(bx0), -int(by0)))
+    small = small.astype(bool)
+    if not small.any():
+        return None
+    ys, xs = np.flatnonzero(small.any(axis=1)), np.flatnonzero(small.any(axis=0))
+    y_lo, y_hi = max(by0 + ys[0] - _CROP_PAD, 0), min(by0 + ys[-1] + 1 + _CROP_PAD, H)
+    x_lo, x_hi = max(bx0 + xs[0] - _CROP_PAD, 0), min(bx0 + xs[-1] + 1 + _CROP_PAD, W)
+    msub = np.zeros((y_hi - y_lo, x_hi - x_lo), bool)
+    msub[by0 - y_lo:by1 - y_lo, bx0 - x_lo:bx1 - x_lo] = small
+    bsub = None
+    if albedo and board.blackness is not None:
+        bsub = np.zeros(msub.shape, np.float32)  # as blackness_map: 0 outside the stored crop
+        ox, oy = board.blackness_origin
+        h, w = board.blackness.shape
+        h, w = min(h, H - oy), min(w, W - ox)
+        sx0, sy0 = max(x_lo, ox), max(y_lo, oy)
+        sx1, sy1 = min(x_hi, ox + w), min(y_hi, oy + h)
+        if sx1 > sx0 and sy1 > sy0:
+            bsub[sy0 - y_lo:sy1 - y_lo, sx0 - x_lo:sx1 - x_lo] = \
+                board.blackness[sy0 - oy:sy1 - oy, sx0 - ox:sx1 - ox]
+        bsub = np.nan_to_num(bsub, nan=0.0)
+        bsub.flags.writeable = False  # shared by every image: never modified
+    msub.flags.writeable = False
+    return msub, bsub, (int(x_lo), int(y_lo))
+
+
 def _board_inputs(img: np.ndarray, boards: tuple[BoardView, BoardView], albedo: bool):
-    masks = [b.mask(img.shape) for b in boards]
-    blks = [b.blackness_map(img.shape) if albedo else None for b in boards]
-    return masks, blks
+    return [_board_crop(img, b, albedo) for b in boards]
+
+
+def _crop_centres(crop, camera: CameraModel, min_snr: float, rho: float | None,
+                  return_info: bool = False):
+    if crop is None:
+        return _empty(return_info)
+    sub, msub, bsub, origin = crop
+    return _centres_in_crop(sub, msub, bsub, origin, camera, min_snr, rho, return_info,
+                            return_info, clean=True)
 
 
 def estimate_reflectance_ratio(camera: CameraModel, stripe_images: list[np.ndarray],
@@ -447,15 +624,29 @@ def estimate_reflectance_ratio(camera: CameraModel, stripe_images: list[np.ndarr
     """
     samples = []
     for img in stripe_images:
-        img = np.asarray(img)
-        masks, blks = _board_inputs(img, boards, True)
-        for m, b in zip(masks, blks):
-            if b is None:
-                return None
-            _, info = stripe_centres(img, m, camera, min_snr, b, rho=1.0, return_info=True)
-            if info.get("samples") is not None:
-                samples.append(info["samples"])
+        got = reflectance_samples(camera, img, boards, min_snr)
+        if got is None:
+            return None
+        samples += got
     return reflectance_ratio(samples)
+
+
+def reflectance_samples(camera: CameraModel, stripe_image: np.ndarray,
+                        boards: tuple[BoardView, BoardView], min_snr: float = 8.0
+                        ) -> list | None:
+    """One image's share of :func:`estimate_reflectance_ratio`: the ``samples`` of its two
+    stripes for :func:`reflectance_ratio` (None when the boards carry no blackness maps)."""
+    img = np.asarray(stripe_image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    out = []
+    for crop in _board_inputs(img, boards, True):
+        if crop is not None and crop[2] is None:
+            return None
+        _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True)
+        if info.get("samples") is not None:
+            out.append(info["samples"])
+    return out
 
 
 def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
@@ -481,14 +672,15 @@ def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     planes = tuple(b.plane_pnp if use_pnp else b.plane for b in boards)
-    masks, blks = _board_inputs(img, boards, albedo_correction)
-    use_albedo = all(b is not None for b in blks)
+    crops = _board_inputs(img, boards, albedo_correction)
+    use_albedo = albedo_correction and all(b.blackness is not None for b in boards)
     if not use_albedo:
-        blks, rho = [None, None], None
+        crops = [None if c is None else (c[0], c[1], None, c[3]) for c in crops]
+        rho = None
     elif rho is None:
         samples = []
-        for m, b in zip(masks, blks):
-            _, info = stripe_centres(img, m, camera, min_snr, b, rho=1.0, return_info=True)
+        for crop in crops:
+            _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True)
             if info.get("samples") is not None:
                 samples.append(info["samples"])
         rho = reflectance_ratio(samples)
@@ -496,7 +688,7 @@ def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
             rho = 1.0  # not seen in this image: no division (background still uses blackness)
     centres, pts = [], []
     for k in range(2):
-        c = stripe_centres(img, masks[k], camera, min_snr, blks[k], rho=rho)
+        c = _crop_centres(crops[k], camera, min_snr, rho)
         if len(c) < 10:
             raise ValueError(f"board {k}: found {len(c)} laser-stripe points, need at least 10; "
                              "is the stripe on both boards and bright enough?")
