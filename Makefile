@@ -15,6 +15,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip uv
 	$(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[dev]'
 	$(BIN)/python -m ipykernel install --sys-prefix --name python3 >/dev/null
+	-$(BIN)/python -m compileall -q -j 2 $(VENV)/lib >/dev/null 2>&1
 	@touch $(STAMP)
 
 test: $(STAMP)

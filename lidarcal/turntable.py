@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from .evaluate import axis_direction_error_deg, pose_error
 from .geometry import (
@@ -44,8 +44,8 @@ from .geometry import (
 MIN_POSITIONS = 3
 # median of the chi distribution with 3 and 2 degrees of freedom: converts the median
 # length of an isotropic Gaussian residual vector into its per-component sigma
-_CHI3_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 3)))
-_CHI2_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 2)))
+_CHI3_MEDIAN = float(np.sqrt(chdtri(3, 0.5)))
+_CHI2_MEDIAN = float(np.sqrt(chdtri(2, 0.5)))
 
 
 # ---------------------------------------------------------------------------- axis
@@ -539,7 +539,7 @@ def fit_rigid(psi_deg, samples: Sequence[Pose], init: PoseFunction | None = None
     model = RigidModel(axis, psi_ref, R_ref, T_ref)
     table = table1(model, psi, samples)
     norm = np.sqrt(((_residual_norms(pred, T, Z, X) / sig) ** 2).sum(1))
-    table["outlier"] = norm > np.sqrt(chi2.ppf(0.999, 7))
+    table["outlier"] = norm > np.sqrt(chdtri(7, 0.001))
     info = {
         "sigma": {"centre_mm": float(sig[0]), "z_axis_deg": float(np.degrees(sig[1])),
                   "x_axis_deg": float(np.degrees(sig[2]))},
