@@ -1,0 +1,158 @@
+"""LiDAR scans by ray casting, with a beam-footprint (mixed pixel) return model.
+
+Footprint and return model
+--------------------------
+Each beam is a Gaussian beam: its 1/e^2 footprint radius at range ``r`` is
+``beam_exit_mm / 2 + r * beam_divergence_mrad / 2000``. The footprint is
+sampled by sub-rays on concentric rings (``footprint_rings``; 3 rings = 37
+sub-rays) reaching out to the 1/e^2 radius, each carrying the Gaussian
+energy ``exp(-2 s^2)`` of its position ``s`` (in units of that radius),
+normalised to sum to 1. A sub-ray returns the energy
+``weight * reflectivity(material) * cos(incidence)``; surfaces beyond
+``range_max`` return nothing.
+
+The echo is energy-weighted over the surfaces in the footprint (SICK-like
+single echo): a surface with a share below ``1 - mixed_dominant`` of the
+returned energy is ignored; the reported range is the energy-weighted mean
+range of the remaining surfaces. So a beam mostly (>= ``mixed_dominant``) on
+one surface reports that surface's range; a beam split between a board (or
+the disc) and the wall behind it reports a "mixed pixel" floating between
+them, in proportion to their energies. No return (0) when the total returned
+energy is below ``detect_energy`` or the range is outside
+``[range_min, range_max]``. Then Gaussian range noise (``range_noise_mm``)
+is added; in the harsh preset ``spurious_rate`` of the beams get a uniform
+random range and ``drop_rate`` of them return nothing. Ranges are rounded to
+0.1 mm as written.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import RigConfig
+from .scene import BLACK, DISC, POST, WALL, WHITE, materials, surface_normals, trace
+
+
+def footprint_pattern(rings: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-ray offsets in the unit disc (M, 2) and Gaussian energy weights (M,) summing to 1."""
+    pts = [np.zeros((1, 2))]
+    for i in range(1, rings + 1):
+        a = 2 * np.pi * (np.arange(6 * i) + 0.5 * (i % 2)) / (6 * i)
+        pts.append(i / rings * np.column_stack([np.cos(a), np.sin(a)]))
+    s = np.vstack(pts)
+    w = np.exp(-2 * (s**2).sum(1))
+    return s, w / w.sum()
+
+
+def reflectivity_table(rig: RigConfig) -> np.ndarray:
+    board, wall, post, disc = rig.lidar_reflectivity
+    t = np.zeros(6)
+    t[WHITE] = t[BLACK] = board
+    t[WALL], t[POST], t[DISC] = wall, post, disc
+    return t
+
+
+def beam_angles_deg(rig: RigConfig) -> np.ndarray:
+    """Beam ``k`` at ``angle_min + k * step`` (the dataset contract)."""
+    n = int(round((rig.lidar_angle_max_deg - rig.lidar_angle_min_deg) / rig.lidar_angle_step_deg)) + 1
+    return rig.lidar_angle_min_deg + np.arange(n) * rig.lidar_angle_step_deg
+
+
+def _energy(surfaces: list, t: np.ndarray, idx: np.ndarray, orig: np.ndarray, dirs: np.ndarray,
+            w: np.ndarray, refl: np.ndarray, rig: RigConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returned energy per sub-ray: weight * reflectivity * cos(incidence); nothing beyond range_max."""
+    hit = (idx >= 0) & (t <= rig.lidar_range_max_mm)
+    t = np.where(hit, t, 0.0)
+    idx = np.where(hit, idx, -1)
+    pts = orig + dirs * t[:, None]
+    mat = materials(surfaces, pts, idx)
+    nrm = surface_normals(surfaces, pts, idx)
+    cos_inc = np.abs(np.einsum("ij,ij->i", nrm, dirs))
+    return t, idx, w * refl[mat] * cos_inc
+
+
+def _cast(surfaces: list, R: np.ndarray, T: np.ndarray, o_l: np.ndarray, d_l: np.ndarray, w: np.ndarray,
+          refl: np.ndarray, rig: RigConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-rays (B, M) of every beam at poses (n): range, surface index, energy, each (n, B, M)."""
+    n, (B, M) = len(R), o_l.shape[:2]
+    dirs = np.einsum("pij,bmj->pbmi", R, d_l).reshape(-1, 3)
+    orig = (np.einsum("pij,bmj->pbmi", R, o_l) + T[:, None, None, :]).reshape(-1, 3)
+    t, idx = trace(surfaces, dirs, origins=orig)
+    t, idx, e = _energy(surfaces, t, idx, orig, dirs, np.tile(w, n * B), refl, rig)
+    return t.reshape(n, B, M), idx.reshape(n, B, M), e.reshape(n, B, M)
+
+
+def _echo(t: np.ndarray, idx: np.ndarray, e: np.ndarray, n_surf: int, rig: RigConfig) -> np.ndarray:
+    """Energy-weighted echo of beams (N, M sub-rays); see the module docstring. 0 = no return."""
+    E = np.zeros((n_surf,) + t.shape[:-1])
+    Rs = np.zeros_like(E)
+    for k in range(n_surf):
+        ek = np.where(idx == k, e, 0.0)
+        E[k] = ek.sum(-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Rs[k] = np.nan_to_num((ek * t).sum(-1) / E[k])
+    tot = E.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = E / tot
+        wk = np.where(share >= 1 - rig.mixed_dominant, share, 0.0)
+        rng_mm = (wk * Rs).sum(0) / wk.sum(0)
+    return np.where(tot >= rig.detect_energy, np.nan_to_num(rng_mm), 0.0)
+
+
+def simulate_scans(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
+                   rng: np.random.Generator, angles_deg: np.ndarray | None = None) -> np.ndarray:
+    """Ranges (P, B) in mm (0 = no return) of the LiDAR at poses ``R`` (P, 3, 3), ``T`` (P, 3).
+
+    See the module docstring for the footprint and return model.
+    """
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    T = np.asarray(T, dtype=float).reshape(-1, 3)
+    ang = np.radians(beam_angles_deg(rig) if angles_deg is None else np.asarray(angles_deg, float))
+    B, P = len(ang), len(R)
+    s, wgt = footprint_pattern(rig.footprint_rings)
+    M = len(s)
+    c, sn = np.cos(ang), np.sin(ang)
+    d = np.column_stack([c, sn, np.zeros(B)])
+    e1 = np.column_stack([-sn, c, np.zeros(B)])
+    e2 = np.tile([0.0, 0.0, 1.0], (B, 1))
+    lat = s[None, :, 0, None] * e1[:, None, :] + s[None, :, 1, None] * e2[:, None, :]   # (B, M, 3)
+    o_l = 0.5 * rig.beam_exit_mm * lat
+    d_l = d[:, None, :] + 0.5e-3 * rig.beam_divergence_mrad * lat
+    d_l /= np.linalg.norm(d_l, axis=2, keepdims=True)
+    refl = reflectivity_table(rig)
+    # coarse probe: the centre and 6 sub-rays on the outer ring; beams whose probes all hit the
+    # same surface are taken as fully on it (their range: the probes' energy-weighted mean)
+    ring = np.flatnonzero(np.isclose(np.linalg.norm(s, axis=1), 1.0))
+    probe = np.concatenate([[0], ring[:: max(1, len(ring) // 6)]])
+    out = np.zeros((P, B))
+    for p0 in range(0, P, 8):
+        Rc, Tc = R[p0:p0 + 8], T[p0:p0 + 8]
+        n = len(Rc)
+        t, idx, e = _cast(surfaces, Rc, Tc, o_l[:, probe], d_l[:, probe], wgt[probe], refl, rig)
+        full = np.any(idx != idx[:, :, :1], axis=2)                       # (n, B) mixed beams
+        ew = np.where(idx >= 0, e, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            res = np.where(idx[:, :, 0] >= 0, (ew * t).sum(2) / ew.sum(2), 0.0)
+            # energy of a uniform footprint ~ the probes' mean energy per unit weight
+            tot = ew.sum(2) / wgt[probe].sum()
+        res = np.where(tot >= rig.detect_energy, res, 0.0)
+        pi, bi = np.nonzero(full)
+        if len(pi):
+            o_sub = o_l[bi]                      # (F, M, 3)
+            d_sub = d_l[bi]
+            dirs = np.einsum("fij,fmj->fmi", Rc[pi], d_sub).reshape(-1, 3)
+            orig = (np.einsum("fij,fmj->fmi", Rc[pi], o_sub) + Tc[pi][:, None, :]).reshape(-1, 3)
+            tf, idf = trace(surfaces, dirs, origins=orig)
+            tf, idf, ef = _energy(surfaces, tf, idf, orig, dirs, np.tile(wgt, len(pi)), refl, rig)
+            res[pi, bi] = _echo(tf.reshape(len(pi), M), idf.reshape(len(pi), M), ef.reshape(len(pi), M),
+                                len(surfaces), rig)
+        out[p0:p0 + n] = res
+    ok = out > 0
+    out = out + ok * rng.normal(0.0, rig.range_noise_mm, out.shape)
+    if rig.spurious_rate > 0:
+        spur = rng.random(out.shape) < rig.spurious_rate
+        out[spur] = rng.uniform(rig.lidar_range_min_mm, rig.lidar_range_max_mm, int(spur.sum()))
+    if rig.drop_rate > 0:
+        out[rng.random(out.shape) < rig.drop_rate] = 0.0
+    out[(out < rig.lidar_range_min_mm) | (out > rig.lidar_range_max_mm)] = 0.0
+    return np.round(out, 1)
