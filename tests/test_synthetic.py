@@ -12,7 +12,7 @@ import pytest
 from lidarcal.dataset import load_dataset, read_image, read_scan, read_sweep
 from lidarcal.geometry import Pose, rotation_about_axis
 from lidarcal.synthetic import RIGS, make_truth, project_points, simulate, simulate_scans
-from lidarcal.synthetic.scene import Disc, InfinitePlane, Rect
+from lidarcal.synthetic.scene import InfinitePlane, Rect
 
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "data" / "paper_rig"
@@ -161,7 +161,7 @@ def test_contract_other_rigs(rig: str, tmp_path: Path) -> None:
 
 
 def _stripe_rows(img: np.ndarray, col: int, row_guess: float, half: int = 12) -> float | None:
-    r0 = int(round(row_guess)) - half
+    r0 = round(row_guess) - half
     prof = img[r0:r0 + 2 * half + 1, col].astype(float)
     prof = prof - np.median(img[:, col])
     prof[prof < 0] = 0
@@ -250,7 +250,7 @@ def _files(root: Path) -> dict[str, bytes]:
 
 
 def test_same_seed_same_bytes_other_seed_differs(tmp_path: Path) -> None:
-    kw = dict(rig="paper", n_positions=3, with_sweeps=False, with_intrinsics=False)
+    kw = {"rig": "paper", "n_positions": 3, "with_sweeps": False, "with_intrinsics": False}
     a = _files(simulate(tmp_path / "a", seed=11, **kw))
     b = _files(simulate(tmp_path / "b", seed=11, **kw))
     c = _files(simulate(tmp_path / "c", seed=12, **kw))

@@ -18,6 +18,6 @@ from .render import RayMap, distort_normalized, undistort_pixels
 from .truth import BoardTruth, DiscTrial, RigTruth, make_truth, project_points
 from .writer import fmt_psi, simulate
 
-__all__ = ["RIGS", "RigConfig", "RigTruth", "BoardTruth", "DiscTrial", "RayMap", "get_rig", "make_truth",
-           "simulate", "simulate_scans", "beam_angles_deg", "footprint_pattern", "project_points",
-           "distort_normalized", "undistort_pixels", "fmt_psi"]
+__all__ = ["RIGS", "BoardTruth", "DiscTrial", "RayMap", "RigConfig", "RigTruth", "beam_angles_deg",
+           "distort_normalized", "fmt_psi", "footprint_pattern", "get_rig", "make_truth", "project_points",
+           "simulate", "simulate_scans", "undistort_pixels"]

@@ -97,7 +97,7 @@ class RigConfig:
     # LiDAR reflectivities (relative energy) of the materials
     lidar_reflectivity: tuple[float, float, float, float] = (0.8, 0.5, 0.4, 0.7)  # board, wall, post, disc
 
-    def with_(self, **changes) -> "RigConfig":
+    def with_(self, **changes) -> RigConfig:
         """A copy with some fields changed (``dataclasses.replace``)."""
         return replace(self, **changes)
 
@@ -163,7 +163,7 @@ HARSH = PAPER.with_(
 RIGS: dict[str, RigConfig] = {"paper": PAPER, "wide": WIDE, "harsh": HARSH}
 
 
-def get_rig(rig: "str | RigConfig") -> RigConfig:
+def get_rig(rig: str | RigConfig) -> RigConfig:
     """A preset by name, or the given config."""
     if isinstance(rig, RigConfig):
         return rig

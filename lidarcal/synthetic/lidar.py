@@ -23,6 +23,18 @@ energy is below ``detect_energy`` or the range is outside
 is added; in the harsh preset ``spurious_rate`` of the beams get a uniform
 random range and ``drop_rate`` of them return nothing. Ranges are rounded to
 0.1 mm as written.
+
+Speed: each beam is first probed with 7 sub-rays (centre + 6 on the outer
+ring); only beams whose probes do not all hit the same surface are traced
+with the full footprint. A surface boundary that cuts only a sliver of the
+footprint between two probes is missed; such slivers carry less energy than
+the ``1 - mixed_dominant`` share that would matter.
+
+Consequence at a rim (paper preset: footprint 3.75 mm at 1.5 m, beams 2.2 mm
+apart, sweep steps 1.3 mm): a beam reports the disc range only when about a
+footprint-sigma (~1 mm) of it lies inside the rim; the outermost disc-range
+returns lie on average ~1.1 mm inside the true rim (bundled data), the next
+beam out is a mixed pixel (off the disc plane) or a wall return.
 """
 
 from __future__ import annotations
@@ -54,7 +66,7 @@ def reflectivity_table(rig: RigConfig) -> np.ndarray:
 
 def beam_angles_deg(rig: RigConfig) -> np.ndarray:
     """Beam ``k`` at ``angle_min + k * step`` (the dataset contract)."""
-    n = int(round((rig.lidar_angle_max_deg - rig.lidar_angle_min_deg) / rig.lidar_angle_step_deg)) + 1
+    n = round((rig.lidar_angle_max_deg - rig.lidar_angle_min_deg) / rig.lidar_angle_step_deg) + 1
     return rig.lidar_angle_min_deg + np.arange(n) * rig.lidar_angle_step_deg
 
 

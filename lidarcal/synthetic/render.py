@@ -27,8 +27,19 @@ from scipy.ndimage import gaussian_filter
 
 from ..geometry import Pose
 from .config import RigConfig
-from .scene import (BLACK, DISC, NOTHING, POST, WALL, WHITE, InfinitePlane, Rect, materials, surface_normals,
-                    trace)
+from .scene import (
+    BLACK,
+    DISC,
+    NOTHING,
+    POST,
+    WALL,
+    WHITE,
+    InfinitePlane,
+    Rect,
+    materials,
+    surface_normals,
+    trace,
+)
 
 
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -86,7 +97,7 @@ class RayMap:
     J: np.ndarray    # (H, W, 2, 2): d(x, y) / d(u, v)
 
     @staticmethod
-    def build(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> "RayMap":
+    def build(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> RayMap:
         """The ray map of a camera (cached: the last few cameras are kept)."""
         key = (tuple(np.asarray(K, float).ravel()), tuple(np.asarray(dist, float).ravel()), tuple(size))
         if key not in _RAYMAP_CACHE:
@@ -96,7 +107,7 @@ class RayMap:
         return _RAYMAP_CACHE[key]
 
     @staticmethod
-    def _build(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> "RayMap":
+    def _build(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> RayMap:
         w, h = size
         u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
         xy = undistort_pixels(np.column_stack([u.ravel(), v.ravel()]), K, dist).reshape(h, w, 2)

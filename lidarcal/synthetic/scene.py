@@ -141,7 +141,7 @@ class Cylinder:
         m = np.flatnonzero(disc >= 0)
         if len(m) == 0:
             return t
-        am, bm, cm = a[m], b[m], (c if len(c) == 1 else c[m])
+        am, bm, _cm = a[m], b[m], (c if len(c) == 1 else c[m])
         sq = np.sqrt(disc[m])
         with np.errstate(invalid="ignore", divide="ignore"):
             t1 = (-bm - sq) / (2 * am)

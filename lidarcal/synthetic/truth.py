@@ -422,7 +422,7 @@ def _sample_disc(truth: RigTruth, j: int) -> DiscTrial | None:
     return None
 
 
-def make_truth(seed: int, rig: "str | RigConfig" = "paper", *, with_discs: bool = True,
+def make_truth(seed: int, rig: str | RigConfig = "paper", *, with_discs: bool = True,
                with_intrinsics: bool = True) -> RigTruth:
     """Sample the geometry of a simulated dataset (cheap, no rendering); deterministic per seed.
 

@@ -14,10 +14,26 @@ import numpy as np
 from ..dataset import DATASET_FORMAT, write_json_atomic
 from .config import RigConfig, get_rig
 from .lidar import beam_angles_deg, simulate_scans
-from .render import RayMap, albedo_table, expose_bright, expose_dark, render_view, smooth_field, stripe_signal
+from .render import (
+    RayMap,
+    albedo_table,
+    expose_bright,
+    expose_dark,
+    render_view,
+    smooth_field,
+    stripe_signal,
+)
 from .scene import InfinitePlane
-from .truth import (STREAM_BOARD_IMAGE, STREAM_FIELD, STREAM_SCAN, STREAM_STRIPE, STREAM_SWEEP, RigTruth,
-                    _rng, make_truth)
+from .truth import (
+    STREAM_BOARD_IMAGE,
+    STREAM_FIELD,
+    STREAM_SCAN,
+    STREAM_STRIPE,
+    STREAM_SWEEP,
+    RigTruth,
+    _rng,
+    make_truth,
+)
 
 STREAM_INTRINSICS_IMAGE = 9
 # zlib level 9; noisy bright images compress best with Huffman-only coding, sparse dark frames
