@@ -11,6 +11,7 @@ the 3D points of both stripes (eq. 4). ``E`` is the common point of
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -686,18 +687,28 @@ def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
         rho = reflectance_ratio(samples)
         if rho is None:
             rho = 1.0  # not seen in this image: no division (background still uses blackness)
-    centres, pts = [], []
+    centres = []
     for k in range(2):
         c = _crop_centres(crops[k], camera, min_snr, rho)
         if len(c) < 10:
             raise ValueError(f"board {k}: found {len(c)} laser-stripe points, need at least 10; "
                              "is the stripe on both boards and bright enough?")
         centres.append(c)
-        pts.append(stripe_points_3d(camera, c, planes[k]))
+    return camera_lines_from_centres(camera, centres, planes, rho)
+
+
+def camera_lines_from_centres(camera: CameraModel, centres: Sequence[np.ndarray],
+                              planes: Sequence[Plane], rho: float | None = None) -> CameraLines:
+    """Section 1.3 after centre extraction: eq. (4), E, l1, l2, alpha.
+
+    Rays through each board's stripe centres meet that board's plane (eq. 5);
+    the laser plane is the TLS fit of both boards' points (the paper's algebraic
+    ``ax + by + cz = 1`` fit is kept for comparison); ``E = Pi_1 ^ Pi_2 ^ Pi_L``;
+    ``l_k = n_k x n_L`` oriented from E towards stripe ``k``.
+    """
+    pts = [stripe_points_3d(camera, c, pl) for c, pl in zip(centres, planes)]
     allp = np.vstack(pts)
     laser = fit_plane(allp)
-    laser_alg = fit_plane_algebraic(allp)
-    laser_lines = laser_plane_from_lines((pts[0], pts[1]), planes)
     E = intersect_planes(planes[0], planes[1], laser)
     ls = []
     for k in range(2):
@@ -708,5 +719,6 @@ def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
     l = np.vstack(ls)
     alpha = float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
     rms = float(np.sqrt(np.mean(laser.distance(allp) ** 2)))
-    return CameraLines(laser, laser_alg, E, l, alpha, (centres[0], centres[1]), (pts[0], pts[1]),
-                       rms, (planes[0], planes[1]), laser_lines, rho)
+    return CameraLines(laser, fit_plane_algebraic(allp), E, l, alpha, (centres[0], centres[1]),
+                       (pts[0], pts[1]), rms, (planes[0], planes[1]),
+                       laser_plane_from_lines((pts[0], pts[1]), tuple(planes)), rho)

@@ -69,16 +69,16 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from .board import BoardView, board_view
+from .board import board_view
 from .camera import project_points
 from .dataset import BoardSpec, CameraModel
 from .evaluate import axis_direction_error_deg, pose_error
-from .geometry import Plane, fit_plane, fit_plane_algebraic, intersect_planes, unit
+from .geometry import Plane, unit
 from .joint import fit_joint
 from .pipeline import CalibrationResult, PositionResult
 from .pose import single_shot_pose
 from .scan import fit_v_lines, scan_points, split_v
-from .stripe import CameraLines, laser_plane_from_lines, stripe_points_3d
+from .stripe import camera_lines_from_centres
 from .turntable import axis_distance_mm, fit_paper, fit_rigid
 
 METHODS = ("samples", "paper", "rigid", "joint", "joint_planes", "scan_only")
@@ -146,32 +146,6 @@ def stripe_centres_truth(camera: CameraModel, board, laser: Plane, lidar_pose, r
     return np.column_stack([t, other]) if axis == 0 else np.column_stack([other, t])
 
 
-def camera_lines_from_centres(camera: CameraModel, centres: Sequence[np.ndarray],
-                              boards: Sequence[BoardView]) -> CameraLines:
-    """Section 1.3 from stripe centres instead of an image (eq. 4, E, l1, l2, alpha).
-
-    The same steps as :func:`lidarcal.stripe.camera_lines` after centre
-    extraction: rays met with each board's (homography) plane, TLS laser plane,
-    E = Pi_1 ^ Pi_2 ^ Pi_L, ``l_k = n_k x n_L`` oriented towards stripe ``k``.
-    """
-    planes = tuple(b.plane for b in boards)
-    pts = [stripe_points_3d(camera, c, pl) for c, pl in zip(centres, planes)]
-    allp = np.vstack(pts)
-    laser = fit_plane(allp)
-    E = intersect_planes(planes[0], planes[1], laser)
-    ls = []
-    for k in range(2):
-        lk = unit(np.cross(planes[k].normal, laser.normal))
-        if (pts[k].mean(0) - E) @ lk < 0:
-            lk = -lk
-        ls.append(lk)
-    l = np.vstack(ls)
-    alpha = float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
-    rms = float(np.sqrt(np.mean(laser.distance(allp) ** 2)))
-    return CameraLines(laser, fit_plane_algebraic(allp), E, l, alpha, (centres[0], centres[1]),
-                       (pts[0], pts[1]), rms, planes, laser_plane_from_lines((pts[0], pts[1]), planes))
-
-
 @dataclass
 class SimulatedRig:
     """A rig's truth and the section-1/2 result built from simulated observations."""
@@ -225,7 +199,7 @@ def simulate_rig(seed: int, setting: StudySetting) -> SimulatedRig:
         try:
             if min(len(c) for c in centres) < 10:
                 raise ValueError("stripe too short")
-            cl = camera_lines_from_centres(camera, centres, views)
+            cl = camera_lines_from_centres(camera, centres, [v.plane for v in views])
             rho = np.where(ranges[i] > 0, ranges[i], np.nan)
             seg = split_v(angles, rho, alpha=cl.alpha)
             pts = scan_points(angles, rho)
