@@ -105,10 +105,17 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(a: argparse.Namespace) -> int:
+    from .dataset import ImagePrefetch, load_dataset
+
+    ds = load_dataset(a.dataset)
+    skip = set(a.skip)
+    # decode the stripe images in a background thread while the heavier modules import
+    images = ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size)
     from .pipeline import calibrate, write_calibration
 
-    res = calibrate(a.dataset, skip=a.skip, skip_failed=a.skip_failed, progress=not a.no_progress and sys.stderr.isatty(),
-                    method=a.method)
+    res = calibrate(ds, skip=a.skip, skip_failed=a.skip_failed,
+                    progress=not a.no_progress and sys.stderr.isatty(), method=a.method,
+                    images=images)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     path = write_calibration(res, a.out, command=" ".join(["lidarcal", *sys.argv[1:]]))

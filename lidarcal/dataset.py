@@ -7,6 +7,9 @@ one line naming the file, what is wrong and what to do. The CLI prints it as
 
 from __future__ import annotations
 
+import csv
+import gzip
+import io
 import json
 import math
 import os
@@ -17,7 +20,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import pandas as pd
 
 DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
@@ -268,38 +270,59 @@ def read_positions(root: Path) -> list[Position]:
     ppath = root / "positions.csv"
     if not ppath.is_file():
         raise DatasetError(ppath, "missing; one row per turntable position is required")
+    cols = read_csv_columns(ppath, ("index", "psi_deg", "stripe_image", "scan"),
+                            "expected header index,psi_deg,stripe_image,scan")
+    index = _numeric_column(cols["index"], ppath, "index", allow_empty=False, what="a number")
+    psi = _numeric_column(cols["psi_deg"], ppath, "psi_deg", allow_empty=False, what="a number")
+    for row, (img, scan) in enumerate(zip(cols["stripe_image"], cols["scan"])):
+        if not img.strip() or not scan.strip():
+            raise DatasetError(ppath, f"row {row + 2}: empty stripe_image or scan path")
+    if len(psi) < 3:
+        raise DatasetError(ppath, f"has {len(psi)} position(s); the method needs at least 3")
+    for name, vals, what in (("psi_deg", psi, "turntable angles"), ("index", index, "indices")):
+        seen: set[float] = set()
+        for v in vals:
+            if v in seen:
+                shown = f"{v:g}" if name == "psi_deg" else f"{int(v)}"
+                raise DatasetError(ppath, f"duplicate {name} {shown}; {what} must be distinct")
+            seen.add(v)
+    return [Position(int(i), float(a), (root / img.strip()).resolve(), (root / sc.strip()).resolve())
+            for i, a, img, sc in zip(index, psi, cols["stripe_image"], cols["scan"])]
+
+
+def read_csv_columns(path: Path, required: tuple[str, ...], expected: str,
+                     gzipped: bool = False) -> dict[str, list[str]]:
+    """The text of the ``required`` columns of a CSV file with a header row (other columns
+    are ignored; blank lines are skipped; a missing trailing field reads as empty).
+
+    Raises :class:`DatasetError` for an unreadable file, a missing column or a row with
+    more fields than the header.
+    """
     try:
-        df = pd.read_csv(ppath, dtype={"stripe_image": str, "scan": str})
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
-        raise DatasetError(ppath, f"not a readable CSV ({str(e).splitlines()[0]})") from None
-    need = ["index", "psi_deg", "stripe_image", "scan"]
-    missing = [c for c in need if c not in df.columns]
+        if gzipped:
+            with gzip.open(path, "rt", newline="") as f:
+                text = f.read()
+        else:
+            with open(path, newline="") as f:
+                text = f.read()
+        rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    except (UnicodeDecodeError, csv.Error, OSError, EOFError) as e:
+        raise DatasetError(path, f"not a readable {'(gzip) ' if gzipped else ''}CSV "
+                                 f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+    if not rows:
+        raise DatasetError(path, f"not a readable CSV (the file is empty); {expected}")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in required if c not in header]
     if missing:
-        raise DatasetError(ppath, f"missing column(s) {', '.join(missing)}; "
-                                  "expected header index,psi_deg,stripe_image,scan")
-    for col in ("index", "psi_deg"):
-        vals = pd.to_numeric(df[col], errors="coerce")
-        bad = df.index[vals.isna() | ~np.isfinite(vals.astype(float))]
-        if len(bad):
-            raise DatasetError(ppath, f"row {int(bad[0]) + 2}: '{col}' is not a number "
-                                      f"({df[col].iloc[bad[0]]!r})")
-        df[col] = vals
-    if df[["stripe_image", "scan"]].isna().any().any():
-        row = int(np.flatnonzero(df[["stripe_image", "scan"]].isna().any(axis=1))[0])
-        raise DatasetError(ppath, f"row {row + 2}: empty stripe_image or scan path")
-    if len(df) < 3:
-        raise DatasetError(ppath, f"has {len(df)} position(s); the method needs at least 3")
-    if df["psi_deg"].duplicated().any():
-        dup = float(df["psi_deg"][df["psi_deg"].duplicated()].iloc[0])
-        raise DatasetError(ppath, f"duplicate psi_deg {dup:g}; turntable angles must be distinct")
-    if df["index"].duplicated().any():
-        dup = int(df["index"][df["index"].duplicated()].iloc[0])
-        raise DatasetError(ppath, f"duplicate index {dup}; indices must be distinct")
-    out = []
-    for row in df.itertuples(index=False):
-        out.append(Position(int(row.index), float(row.psi_deg),
-                            (root / row.stripe_image).resolve(), (root / row.scan).resolve()))
-    return out
+        raise DatasetError(path, f"missing column(s) {', '.join(missing)}; {expected}")
+    n = len(header)
+    for k, r in enumerate(rows[1:]):
+        if len(r) > n:
+            raise DatasetError(path, f"row {k + 2}: {len(r)} fields, the header has {n}; "
+                                     "fix or re-export the file")
+    where = [header.index(c) for c in required]
+    body = rows[1:]
+    return {c: [r[j] if j < len(r) else "" for r in body] for c, j in zip(required, where)}
 
 
 def _measurements(items: Any, root: Path, jpath: Path) -> list[MeasurementSpec]:
@@ -334,6 +357,48 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None) -> np.ndar
     return img
 
 
+class ImagePrefetch:
+    """Stripe images decoded by a background thread while the caller does other work.
+
+    ``cv2.imread`` releases the GIL, so decoding overlaps with imports and board
+    detection in the main thread. Images beyond ``max_bytes`` are left to be read
+    on demand; an unreadable image is kept as its :class:`DatasetError`, raised by
+    :meth:`get` (so the caller's per-position error policy applies unchanged).
+    Call :meth:`join` before forking worker processes (they then share the images).
+    """
+
+    def __init__(self, positions: list[Position], image_size: tuple[int, int] | None,
+                 max_bytes: float = 1 << 30):
+        import threading
+
+        self._images: dict[int, np.ndarray | DatasetError] = {}
+        self._size = image_size
+        n_max = len(positions)
+        if image_size is not None:
+            n_max = int(max_bytes // max(image_size[0] * image_size[1], 1))
+        self._todo = positions[:n_max]
+        self._thread = threading.Thread(target=self._run, name="lidarcal-prefetch", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        for p in self._todo:
+            try:
+                self._images[p.index] = read_image(p.stripe_image, self._size)
+            except DatasetError as e:
+                self._images[p.index] = e
+
+    def join(self) -> ImagePrefetch:
+        self._thread.join()
+        return self
+
+    def get(self, pos: Position) -> np.ndarray | None:
+        """The decoded image of ``pos`` (None: not prefetched, read it yourself)."""
+        img = self._images.get(pos.index)
+        if isinstance(img, DatasetError):
+            raise img
+        return img
+
+
 def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``scans/NNNN.csv`` as ``(angle_deg, range_mm)``; no-return beams get range NaN.
 
@@ -344,73 +409,80 @@ def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, n
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "missing scan; copy it again or drop this position")
-    try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
-        raise DatasetError(path, f"not a readable CSV ({str(e).splitlines()[0]})") from None
-    return _parse_scan_frame(df, path, lidar)
-
-
-def _parse_scan_frame(df: pd.DataFrame, path: Path, lidar: LidarSpec | None,
-                      cols: tuple[str, str] = ("angle_deg", "range_mm")) -> tuple[np.ndarray, np.ndarray]:
-    missing = [c for c in cols if c not in df.columns]
-    if missing:
-        raise DatasetError(path, f"missing column(s) {', '.join(missing)}; expected header "
-                                 f"{','.join(cols)}")
-    if len(df) == 0:
+    cols = read_csv_columns(path, ("angle_deg", "range_mm"), "expected header angle_deg,range_mm")
+    if not cols["angle_deg"]:
         raise DatasetError(path, "scan has no rows")
-    ang = _numeric_column(df[cols[0]], path, cols[0], allow_empty=False)
-    rng_txt = df[cols[1]].astype(str).str.strip()
-    empty = rng_txt == ""
-    rng = _numeric_column(rng_txt.where(~empty, "0"), path, cols[1], allow_empty=True)
+    ang = _numeric_column(cols["angle_deg"], path, "angle_deg", allow_empty=False)
+    rng = _ranges(cols["range_mm"], path, lidar)
+    if np.any(np.diff(ang) <= 0):
+        raise DatasetError(path, "angles are not strictly ascending; one row per beam expected")
+    return ang, rng
+
+
+def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
+            values: np.ndarray | None = None) -> np.ndarray:
+    """Range column (its text, or its finite ``values``): empty or 0 = no return, NaN (as are
+    ranges outside the LiDAR's limits)."""
+    rng = _numeric_column(text, path, "range_mm", allow_empty=True) if values is None \
+        else values.copy()
     if np.any(rng < 0):
         row = int(np.flatnonzero(rng < 0)[0])
         raise DatasetError(path, f"row {row + 2}: negative range {rng[row]:g}; ranges must be >= 0")
-    if np.any(np.diff(ang) <= 0):
-        raise DatasetError(path, "angles are not strictly ascending; one row per beam expected")
-    rng = rng.astype(float)
     no_return = rng == 0
     if lidar is not None:
         no_return |= (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
     rng[no_return] = np.nan
-    return ang, rng
+    return rng
 
 
-def _numeric_column(col: pd.Series, path: Path, name: str, allow_empty: bool) -> np.ndarray:
-    vals = pd.to_numeric(col, errors="coerce").to_numpy(dtype=float)
+def _numeric_column(text: list[str], path: Path, name: str, allow_empty: bool,
+                    what: str = "a finite number") -> np.ndarray:
+    """Floats from CSV fields; an empty field is 0 when ``allow_empty``; anything that is not
+    a finite number raises :class:`DatasetError` naming the row."""
+    if allow_empty:
+        text = [t if t.strip() else "0" for t in text]
+    try:
+        vals = np.array(text, dtype=float)
+    except ValueError:
+        vals = np.array([_to_float(t) for t in text], dtype=float)
     bad = ~np.isfinite(vals)
     if np.any(bad):
         row = int(np.flatnonzero(bad)[0])
-        raise DatasetError(path, f"row {row + 2}: '{name}' is not a finite number "
-                                 f"({col.iloc[row]!r}); fix or re-export the file")
+        raise DatasetError(path, f"row {row + 2}: '{name}' is not {what} "
+                                 f"({text[row]!r}); fix or re-export the file")
     return vals
 
 
-def read_sweep(path: Path, lidar: LidarSpec | None = None) -> pd.DataFrame:
-    """``measure/*.csv.gz``: long form psi_deg, angle_deg, range_mm (NaN = no return)."""
+def _to_float(t: str) -> float:
+    try:
+        return float(t)
+    except ValueError:
+        return math.nan
+
+
+def read_sweep(path: Path, lidar: LidarSpec | None = None):
+    """``measure/*.csv.gz``: long form psi_deg, angle_deg, range_mm (NaN = no return), as a
+    :class:`pandas.DataFrame`."""
+    import pandas as pd
+
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "missing sweep file listed in dataset.json 'measurements'")
-    try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError,
-            EOFError) as e:
-        raise DatasetError(path, f"not a readable (gzip) CSV ({str(e).splitlines()[0]})") from None
-    missing = [c for c in ("psi_deg", "angle_deg", "range_mm") if c not in df.columns]
-    if missing:
-        raise DatasetError(path, f"missing column(s) {', '.join(missing)}; expected header "
-                                 "psi_deg,angle_deg,range_mm")
-    psi = _numeric_column(df["psi_deg"], path, "psi_deg", allow_empty=False)
-    ang = _numeric_column(df["angle_deg"], path, "angle_deg", allow_empty=False)
-    rtxt = df["range_mm"].astype(str).str.strip()
-    rng = _numeric_column(rtxt.where(rtxt != "", "0"), path, "range_mm", allow_empty=True)
-    if np.any(rng < 0):
-        row = int(np.flatnonzero(rng < 0)[0])
-        raise DatasetError(path, f"row {row + 2}: negative range {rng[row]:g}")
-    no_return = rng == 0
-    if lidar is not None:
-        no_return |= (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
-    rng = np.where(no_return, np.nan, rng)
+    need = ("psi_deg", "angle_deg", "range_mm")
+    try:  # fast path: pandas' C parser; only an empty field reads as NaN (= no return)
+        df = pd.read_csv(path, usecols=list(need), keep_default_na=False, na_values=[""])
+        fast = all(df[c].dtype.kind in "if" for c in need) and not df.empty
+    except (ValueError, UnicodeDecodeError, OSError, EOFError, pd.errors.ParserError):
+        fast = False
+    if fast and np.isfinite(df[list(need)].fillna(0.0).to_numpy(float)).all():
+        psi, ang = df["psi_deg"].to_numpy(float), df["angle_deg"].to_numpy(float)
+        rng = _ranges([], path, lidar, df["range_mm"].fillna(0.0).to_numpy(float))
+    else:  # the careful path, which names the offending row
+        cols = read_csv_columns(path, need, "expected header psi_deg,angle_deg,range_mm",
+                                gzipped=path.suffix == ".gz")
+        psi = _numeric_column(cols["psi_deg"], path, "psi_deg", allow_empty=False)
+        ang = _numeric_column(cols["angle_deg"], path, "angle_deg", allow_empty=False)
+        rng = _ranges(cols["range_mm"], path, lidar)
     return pd.DataFrame({"psi_deg": psi, "angle_deg": ang, "range_mm": rng})
 
 

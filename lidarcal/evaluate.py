@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 from .geometry import Plane, Pose, angle_between_deg, intersect_planes
 
@@ -24,6 +28,8 @@ def truth_poses(truth: dict) -> dict[int, Pose]:
 
 def pose_errors(estimates: dict[int, Pose], truth: dict) -> pd.DataFrame:
     """One row per position present in both: index, centre_mm, z_axis_deg, x_axis_deg."""
+    import pandas as pd
+
     tp = truth_poses(truth)
     rows = [{"index": i, **pose_error(p, tp[i])} for i, p in sorted(estimates.items()) if i in tp]
     return pd.DataFrame(rows, columns=["index", "centre_mm", "z_axis_deg", "x_axis_deg"])

@@ -12,26 +12,32 @@ can also be dropped explicitly (``skip``).
 from __future__ import annotations
 
 import hashlib
+import multiprocessing
 import os
+import sys
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import pandas as pd
 
 from . import __version__
 from .board import BoardView, find_v_boards
 from .camera import IntrinsicsResult, calibrate_intrinsics
 from .dataset import (CALIBRATION_FORMAT, MEASUREMENTS_FORMAT, CameraModel, Dataset, DatasetError,
-                      LidarSpec, Position, load_dataset, read_image, read_scan, read_sweep,
-                      write_json_atomic)
+                      ImagePrefetch, LidarSpec, Position, load_dataset, read_image, read_scan,
+                      read_sweep, write_json_atomic)
 from .geometry import Pose
 from .pose import single_shot_pose
 from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
 from .stripe import (CameraLines, camera_lines, estimate_reflectance_ratio, reflectance_ratio,
                      reflectance_samples)
 from .turntable import fit_paper, fit_rigid
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 MIN_POSITIONS = 3
 
@@ -92,7 +98,7 @@ def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView,
 
     ``rho`` is the stripe's black/white reflectance ratio on the boards (one per dataset).
     """
-    img = read_image(pos.stripe_image, camera.image_size)
+    img = _stripe_image(pos, camera)
     try:
         cl = camera_lines(camera, img, boards, rho=rho)
     except ValueError as e:
@@ -118,8 +124,24 @@ def _solve_safe(args) -> PositionResult | DatasetError:
 
 
 # per-worker constants of a run (camera, boards with their blackness maps, LiDAR spec), set
-# once by the pool initializer instead of being pickled with every task
+# once by the pool initializer instead of being pickled with every task; "images" (decoded
+# stripe images, an ImagePrefetch) is set in the parent and inherited by forked workers
 _WORKER: dict = {}
+
+
+def _stripe_image(pos: Position, camera: CameraModel) -> np.ndarray:
+    """The stripe image of ``pos``: prefetched when available, else read now."""
+    pre = _WORKER.get("images")
+    img = None if pre is None else pre.get(pos)
+    return read_image(pos.stripe_image, camera.image_size) if img is None else img
+
+
+def _fork_context():
+    """The "fork" start method where it exists and is safe (Linux): workers inherit the
+    parent's imported modules and prefetched images instead of re-importing and re-reading."""
+    if sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("fork")
+    return None
 
 
 def _init_worker(camera: CameraModel, boards: tuple[BoardView, BoardView],
@@ -135,7 +157,7 @@ def _solve_task(task: tuple[Position, float | None]) -> PositionResult | Dataset
 def _rho_samples_task(pos: Position) -> list:
     """Reflectance samples of one stripe image (for :func:`dataset_reflectance_ratio`)."""
     try:
-        img = read_image(pos.stripe_image, _WORKER["camera"].image_size)
+        img = _stripe_image(pos, _WORKER["camera"])
     except DatasetError:
         return []  # unreadable: left to the per-position step, which reports it
     return reflectance_samples(_WORKER["camera"], img, _WORKER["boards"])
@@ -160,7 +182,7 @@ def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, Boar
     images = []
     for k in _rho_picks(positions, n_images):
         try:
-            images.append(read_image(positions[k].stripe_image, camera.image_size))
+            images.append(_stripe_image(positions[k], camera))
         except DatasetError:
             continue
     return estimate_reflectance_ratio(camera, images, boards) if images else None
@@ -186,20 +208,40 @@ def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]
 
 def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),
               skip_failed: bool = False, method: str = "rigid", progress: bool = False,
-              workers: int | None = None) -> CalibrationResult:
-    """Run sections 1 and 2 of the paper on a dataset folder."""
+              workers: int | None = None, images: ImagePrefetch | None = None
+              ) -> CalibrationResult:
+    """Run sections 1 and 2 of the paper on a dataset folder.
+
+    ``images``: stripe images already being decoded (:class:`lidarcal.dataset.ImagePrefetch`);
+    by default they are decoded in a background thread while the boards are found.
+    """
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
-    camera, intr = camera_for(ds)
-    boards = find_boards(ds, camera)
     skip = set(skip)
     todo = [p for p in ds.positions if p.index not in skip]
+    if images is None:
+        images = ImagePrefetch(todo, ds.image_size)
+    camera, intr = camera_for(ds)
+    boards = find_boards(ds, camera)
+    _WORKER["images"] = images.join()  # joined: no thread runs when the workers fork
+    try:
+        return _calibrate(ds, camera, intr, boards, todo, skip, skip_failed, method, progress,
+                          workers)
+    finally:
+        _WORKER.pop("images", None)
+
+
+def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
+               boards: tuple[BoardView, BoardView], todo: list[Position], skip: set[int],
+               skip_failed: bool, method: str, progress: bool, workers: int | None
+               ) -> CalibrationResult:
     skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
     warnings: list[str] = []
     workers = workers or min(2, os.cpu_count() or 1)
     if workers > 1 and len(todo) > 4:
         # camera, boards and LiDAR spec go to each worker once (initializer), not with each task
         with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
-                                 initargs=(camera, boards, ds.lidar)) as ex:
+                                 initargs=(camera, boards, ds.lidar),
+                                 mp_context=_fork_context()) as ex:
             picks = [todo[k] for k in _rho_picks(todo)]
             got = list(ex.map(_rho_samples_task, picks))
             samples = [s for ss in got if ss for s in ss]
@@ -313,6 +355,8 @@ def write_calibration(res: CalibrationResult, out_dir: str | os.PathLike,
 
 def measure_dataset(dataset: str | os.PathLike, calibration: str | os.PathLike) -> pd.DataFrame:
     """Every entry of dataset.json ``measurements``, measured with a calibration (section 3.2)."""
+    import pandas as pd
+
     from .api import load_calibration
     from .measure import measure_disc
 

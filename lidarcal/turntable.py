@@ -22,13 +22,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
-import pandas as pd
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from scipy.special import chdtri
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 from .evaluate import axis_direction_error_deg, pose_error
 from .geometry import (
@@ -46,6 +48,7 @@ MIN_POSITIONS = 3
 # length of an isotropic Gaussian residual vector into its per-component sigma
 _CHI3_MEDIAN = float(np.sqrt(chdtri(3, 0.5)))
 _CHI2_MEDIAN = float(np.sqrt(chdtri(2, 0.5)))
+_CHI7_999 = float(np.sqrt(chdtri(7, 0.001)))  # 99.9 % point of chi(7): a sample's outlier test
 
 
 # ---------------------------------------------------------------------------- axis
@@ -483,8 +486,8 @@ def fit_rigid(psi_deg, samples: Sequence[Pose], init: PoseFunction | None = None
     data (median residual lengths after the initial fit, then after a first robust
     fit), never constants. 10 parameters: axis direction (2), axis point (2),
     reference rotation (3) and centre (3). ``info`` holds ``sigma`` (centre_mm,
-    z_axis_deg, x_axis_deg), ``residuals`` (Table 1 against the samples, with an
-    ``outlier`` column: normalised residual beyond the chi(7) 99.9 % point),
+    z_axis_deg, x_axis_deg), ``residuals`` (Table 1 against the samples as a dict of
+    columns, :func:`table1_columns`, with an ``outlier`` column: normalised residual beyond the chi(7) 99.9 % point),
     ``std`` (standard errors from the Jacobian) and the optimiser's ``cost``/``nfev``.
     """
     psi = _check_inputs(psi_deg, samples)
@@ -537,9 +540,9 @@ def fit_rigid(psi_deg, samples: Sequence[Pose], init: PoseFunction | None = None
     inv = np.where(sv > sv[0] * 1e-12, 1.0 / np.maximum(sv, 1e-300) ** 2, np.inf)
     std = np.sqrt((vt.T**2) @ inv)  # inf for an undetermined parameter
     model = RigidModel(axis, psi_ref, R_ref, T_ref)
-    table = table1(model, psi, samples)
+    table = table1_columns(model, psi, samples)
     norm = np.sqrt(((_residual_norms(pred, T, Z, X) / sig) ** 2).sum(1))
-    table["outlier"] = norm > np.sqrt(chdtri(7, 0.001))
+    table["outlier"] = norm > _CHI7_999
     info = {
         "sigma": {"centre_mm": float(sig[0]), "z_axis_deg": float(np.degrees(sig[1])),
                   "x_axis_deg": float(np.degrees(sig[2]))},
@@ -578,10 +581,20 @@ def table1(model: PoseFunction, psi_deg, samples: Sequence[Pose]) -> pd.DataFram
     ``model.pose(psi_i)`` and sample i; with a simulator's truth poses instead of
     samples the same table gives true errors). See :func:`table1_summary`.
     """
+    import pandas as pd
+
+    return pd.DataFrame(table1_columns(model, psi_deg, samples))
+
+
+def table1_columns(model: PoseFunction, psi_deg, samples: Sequence[Pose]) -> dict[str, np.ndarray]:
+    """:func:`table1` as a dict of columns (numpy arrays; no pandas needed)."""
     psi = np.asarray(psi_deg, dtype=float).ravel()
     fitted = model.pose(psi)
-    rows = [{"psi_deg": float(p), **pose_error(f, s)} for p, f, s in zip(psi, fitted, samples)]
-    return pd.DataFrame(rows, columns=["psi_deg", "centre_mm", "z_axis_deg", "x_axis_deg"])
+    errs = [pose_error(f, s) for f, s in zip(fitted, samples)]
+    out = {"psi_deg": psi}
+    for q in ("centre_mm", "z_axis_deg", "x_axis_deg"):
+        out[q] = np.array([e[q] for e in errs], dtype=float)
+    return out
 
 
 def table1_summary(table: pd.DataFrame) -> pd.DataFrame:
@@ -620,6 +633,8 @@ def sensitivity_study(truth: PoseFunction, psi0_deg: float = 0.0,
     (centre_mm, z_axis_deg, x_axis_deg) and, for the models, the axis direction
     error (deg) and the axis offset near the LiDAR (mm).
     """
+    import pandas as pd
+
     rows = []
     for n in n_positions:
         for span in ranges_deg:

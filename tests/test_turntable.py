@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -198,8 +199,8 @@ def test_single_outlier_is_harmless(seed):
     assert np.all(e_rob < mean_errors(samples, true))
     assert np.all(e_rob < 1.5 * clean + np.array([0.05, 0.002, 0.005]))
     assert e_lin[1] > 2 * e_rob[1]  # without the robust loss the bad sample drags the fit
-    assert robust.info["residuals"]["outlier"].iloc[17]
-    assert robust.info["residuals"]["outlier"].sum() <= 3
+    assert pd.DataFrame(robust.info["residuals"])["outlier"].iloc[17]
+    assert pd.DataFrame(robust.info["residuals"])["outlier"].sum() <= 3
     # a zero weight removes it: same as the fit without it
     w = np.ones(len(psi))
     w[17] = 0
@@ -277,7 +278,7 @@ def test_table1_and_summary():
     assert table1_summary(table1(truth, psi, true)).to_numpy().max() < 1e-9
     # self-consistency (Table 1) ~ the sample noise for a good fit
     rigid = fit_rigid(psi, samples)
-    assert table1_summary(rigid.info["residuals"]).loc["mean", "centre_mm"] == \
+    assert table1_summary(pd.DataFrame(rigid.info["residuals"])).loc["mean", "centre_mm"] == \
         pytest.approx(mean_errors(samples, true)[0], rel=0.25)
 
 
