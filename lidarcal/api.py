@@ -50,8 +50,8 @@ class Calibration:
 def load_calibration(path: str | os.PathLike, model: str = "poses") -> Calibration:
     """Read ``calibration.json`` (a file or the folder holding it).
 
-    ``model="poses"`` gives the pose function that filled ``poses``; ``"paper"``
-    the paper's chain (section 2) when it was stored.
+    ``model="poses"`` gives the pose function that filled ``poses``; ``"paper"``,
+    ``"rigid"`` or ``"joint"`` that pose function when it was stored.
     """
     from .turntable import model_from_dict
 

@@ -33,7 +33,10 @@ class BoardView:
     (``R_pnp``, ``T_pnp``). ``reprojection_rms_px`` = (homography, PnP).
     ``outline_px`` is a closed polygon (M, 2) around the printed pattern
     (one square beyond the outer inner corners) in the raw image, used to
-    mask this board's laser stripe. ``blackness`` is a crop of the bright
+    draw the board. ``stripe_outline_px`` reaches half a square further, onto the
+    white border that printed chessboards carry (a stripe crossing the board
+    below the pattern is still found there); the stripe search uses it, minus
+    the other board's ``outline_px``. ``blackness`` is a crop of the bright
     image (origin ``blackness_origin`` = (x0, y0)) normalised to 0 on white
     and 1 on black squares by smooth white/black level fields (see
     :func:`board_blackness`); ``bright_ratio`` is the black/white ratio of
@@ -52,6 +55,7 @@ class BoardView:
     blackness: np.ndarray | None = field(default=None, repr=False)
     blackness_origin: tuple[int, int] = (0, 0)
     bright_ratio: float | None = None
+    stripe_outline_px: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def centroid_px(self) -> np.ndarray:
@@ -230,6 +234,9 @@ def board_outline_px(camera: CameraModel, R: np.ndarray, T: np.ndarray, board: B
     return project_points(camera, P)
 
 
+STRIPE_BORDER_SQUARES = 0.5  # white border beyond the pattern searched for the stripe
+
+
 def board_view(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec) -> BoardView:
     """Both plane estimates (homography eq. 2-3, and solvePnP) for one detected board."""
     obj = board.object_points()
@@ -238,8 +245,11 @@ def board_view(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec) ->
     rms = (reprojection_rms_px(camera, R, T, corners_px, obj),
            reprojection_rms_px(camera, R_pnp, T_pnp, corners_px, obj))
     outline = board_outline_px(camera, R_pnp, T_pnp, board, margin_squares=1.0)
+    stripe_outline = board_outline_px(camera, R_pnp, T_pnp, board,
+                                      margin_squares=1.0 + STRIPE_BORDER_SQUARES)
     return BoardView(np.asarray(corners_px, float), plane_from_pose(R, T),
-                     plane_from_pose(R_pnp, T_pnp), R, T, R_pnp, T_pnp, rms, outline)
+                     plane_from_pose(R_pnp, T_pnp), R, T, R_pnp, T_pnp, rms, outline,
+                     stripe_outline_px=stripe_outline)
 
 
 def _poly2(px: np.ndarray, scale: np.ndarray, centre: np.ndarray) -> np.ndarray:

@@ -47,8 +47,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("calibrate", help="calibrate the LiDAR pose function from a dataset")
     s.add_argument("dataset", type=Path)
     s.add_argument("--out", type=Path, required=True, help="output folder for calibration.json")
-    s.add_argument("--method", choices=["paper", "rigid"], default="rigid",
-                   help="which pose function fills 'poses' (default: rigid, the better one)")
+    s.add_argument("--method", choices=["joint", "rigid", "paper"], default="joint",
+                   help="which pose function fills 'poses': joint (default; the joint fit of all "
+                        "scan points and stripe centres, with 1-sigma uncertainties), rigid (a "
+                        "rigid rotation fitted to the single-shot poses) or paper (the paper's "
+                        "chain, eqs. 15-27); all are stored")
     s.add_argument("--skip", type=int, nargs="*", default=[], help="position indices to drop")
     s.add_argument("--skip-failed", action="store_true",
                    help="skip positions that cannot be solved (warning) while >= 3 remain")
@@ -57,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("pose", help="evaluate a calibration's pose function at turntable angles")
     s.add_argument("calibration", type=Path)
     s.add_argument("--psi", type=float, nargs="+", required=True, help="turntable angles, deg")
-    s.add_argument("--model", choices=["poses", "paper"], default="poses")
+    s.add_argument("--model", choices=["poses", "paper", "rigid", "joint"], default="poses",
+                   help="pose function: the one that filled 'poses' (default) or a stored one")
 
     s = sub.add_parser("measure", help="measure the objects swept in a dataset")
     s.add_argument("dataset", type=Path)
@@ -135,6 +139,10 @@ def _cmd_pose(a: argparse.Namespace) -> int:
         print("R =")
         print(pose.R)
         print("T_mm =", pose.T)
+        if hasattr(cal.model, "sigma"):  # the joint fit carries its covariance
+            sg = cal.model.sigma(psi)
+            print(f"1-sigma: centre {sg['centre_mm']:.4f} mm, z axis {sg['z_axis_deg']:.5f} deg, "
+                  f"x axis {sg['x_axis_deg']:.5f} deg")
     return 0
 
 

@@ -35,6 +35,9 @@ class DatasetError(Exception):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
+    def __reduce__(self):  # picklable (worker processes return it), with both fields
+        return (type(self), (self.path, self.problem))
+
 
 @dataclass(frozen=True)
 class CameraModel:

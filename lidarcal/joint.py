@@ -66,16 +66,19 @@ about ``axis.direction``); mm and degrees at the edges, radians inside.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import pandas as pd
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .dataset import BoardSpec, CameraModel
 from .geometry import Plane, Pose, plane_basis, unit
 from .turntable import Axis, RigidModel
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 MAD_TO_SIGMA = 1.4826
 _CHI1_MEDIAN = 0.45493642311957283  # median of the chi-square distribution with 1 dof
@@ -628,12 +631,19 @@ class JointModel:
         array a DataFrame (one row per angle). ``inf`` marks a quantity the
         data do not determine.
         """
-        scalar = np.ndim(psi_deg) == 0
+        import pandas as pd
+
+        cols = self.sigma_columns(psi_deg)
+        if np.ndim(psi_deg) == 0:
+            return {k: float(v[0]) for k, v in cols.items() if k != "psi_deg"}
+        return pd.DataFrame(cols)
+
+    def sigma_columns(self, psi_deg: float | np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`sigma` as a dict of columns (``psi_deg`` first), numpy arrays."""
         psi = np.atleast_1d(np.asarray(psi_deg, dtype=float))
         out = _pose_sigmas(self._base(), self.cov, np.radians(psi - self.psi_ref_deg),
                            self.info.get("null", np.zeros((N_RIG, 0))))
-        out.insert(0, "psi_deg", psi)
-        return out.iloc[0].drop("psi_deg").to_dict() if scalar else out
+        return {"psi_deg": psi, **out}
 
     def to_dict(self) -> dict:
         return {"type": "joint", "axis": self.axis.to_dict(), "psi_ref_deg": float(self.psi_ref_deg),
@@ -656,7 +666,8 @@ class JointModel:
                           dict(d.get("noise", {})), tuple(d.get("warnings", ())), {"null": null})
 
 
-def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray) -> pd.DataFrame:
+def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray
+                 ) -> dict[str, np.ndarray]:
     """Propagate ``cov`` (10, 10) to centre, z, x sigmas at angles ``t`` (finite differences)."""
     x0 = np.zeros(N_RIG)
     R0, _ = _poses(*_rig(x0, base), t)
@@ -692,20 +703,20 @@ def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray) 
     Pk = np.eye(3) - np.outer(base.k, base.k)
     cf = Pk @ Gf @ C @ Gf.T @ Pk
     rows["axis_point_mm"] = np.full(len(t), np.sqrt(max(np.trace(cf), 0.0)))
-    out = pd.DataFrame(rows)
+    out = {k: np.asarray(v, dtype=float) for k, v in rows.items()}
     if null.shape[1]:  # quantities moved by an unobservable direction are undetermined
         def moved(G):  # G (..., m, 10)
             g = np.abs(G @ null)
             return (g > 1e-6 * (np.abs(G).max() + 1e-300)).any(axis=(-1, -2))
-        out.loc[moved(GT), "centre_mm"] = np.inf
+        out["centre_mm"][moved(GT)] = np.inf
         for name, col in (("z_axis_deg", 2), ("x_axis_deg", 0)):
             v = R0[:, :, col]
             P = np.eye(3) - v[:, :, None] * v[:, None, :]
-            out.loc[moved(P @ Gw), name] = np.inf
+            out[name][moved(P @ Gw)] = np.inf
         if (np.abs(null[:2]) > 1e-6).any():
-            out["axis_direction_deg"] = np.inf
+            out["axis_direction_deg"][:] = np.inf
         if moved((Pk @ Gf)[None]).any():
-            out["axis_point_mm"] = np.inf
+            out["axis_point_mm"][:] = np.inf
     return out
 
 

@@ -40,6 +40,8 @@ if TYPE_CHECKING:
     import pandas as pd
 
 MIN_POSITIONS = 3
+METHODS = ("joint", "rigid", "paper")
+DEFAULT_METHOD = "joint"  # the most accurate on our rendered rigs (see README, issue 6 note)
 
 
 @dataclass
@@ -66,11 +68,20 @@ class CalibrationResult:
     rigid_model: object
     method: str
     warnings: list[str] = field(default_factory=list)
+    joint_model: object | None = None
+
+    @property
+    def models(self) -> dict[str, object]:
+        """Every pose function fitted: "paper", "rigid" and (when run) "joint"."""
+        out = {"paper": self.paper_model, "rigid": self.rigid_model}
+        if self.joint_model is not None:
+            out["joint"] = self.joint_model
+        return out
 
     @property
     def model(self):
         """The pose function that fills ``poses`` (``method``)."""
-        return self.rigid_model if self.method == "rigid" else self.paper_model
+        return self.models[self.method]
 
     @property
     def psi_deg(self) -> np.ndarray:
@@ -207,14 +218,22 @@ def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]
 
 
 def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),
-              skip_failed: bool = False, method: str = "rigid", progress: bool = False,
+              skip_failed: bool = False, method: str = DEFAULT_METHOD, progress: bool = False,
               workers: int | None = None, images: ImagePrefetch | None = None
               ) -> CalibrationResult:
     """Run sections 1 and 2 of the paper on a dataset folder.
 
+    ``method`` picks the pose function that fills ``poses``: "joint" (the joint
+    maximum-likelihood fit of :mod:`lidarcal.joint`, with uncertainties), "rigid"
+    (a rigid rotation fitted to the single-shot samples) or "paper" (the paper's
+    chain, eqs. 15-27). The paper's and the rigid fits are always computed (the
+    joint fit starts from them). When the joint fit fails the rigid fit is used,
+    with a warning.
     ``images``: stripe images already being decoded (:class:`lidarcal.dataset.ImagePrefetch`);
     by default they are decoded in a background thread while the boards are found.
     """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     skip = set(skip)
     todo = [p for p in ds.positions if p.index not in skip]
@@ -272,8 +291,19 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     paper = fit_paper(psi, samples)
     rigid = fit_rigid(psi, samples, init=paper)
     warnings += _setup_warnings(psi, results)
-    return CalibrationResult(ds, camera, intr, boards, results, skipped, paper, rigid, method,
-                             warnings)
+    res = CalibrationResult(ds, camera, intr, boards, results, skipped, paper, rigid, method,
+                            warnings)
+    if method == "joint":
+        from .joint import fit_joint
+
+        try:
+            res.joint_model = fit_joint(res)
+        except (ValueError, np.linalg.LinAlgError) as e:
+            res.method = "rigid"
+            warnings.append(f"the joint fit failed ({e}); 'poses' holds the rigid fit instead")
+        else:
+            warnings += [f"joint fit: {w}" for w in res.joint_model.warnings]
+    return res
 
 
 def _setup_warnings(psi: np.ndarray, results: list[PositionResult]) -> list[str]:
@@ -302,7 +332,7 @@ def dataset_hash(ds: Dataset) -> str:
     for p in ds.positions:
         files += [p.stripe_image, p.scan]
     for f in files:
-        h.update(str(f.relative_to(ds.root)).encode())
+        h.update(os.path.relpath(f, ds.root).encode())  # files may live outside the folder
         h.update(f.read_bytes())
     return h.hexdigest()
 
@@ -316,14 +346,13 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
     ds = res.dataset
     psi = {p.index: p.psi_deg for p in res.positions}
     cam = res.camera.to_dict()
-    other = res.paper_model if res.method == "rigid" else res.rigid_model
     samples = []
     for p in res.positions:
         row = {"index": p.index, "psi_deg": p.psi_deg, **p.pose.to_dict(),
                "rotation_residual": float(p.pose.residual),
                "alpha_deg": float(np.degrees(p.camera_lines.alpha))}
         samples.append(row)
-    return {
+    out = {
         "format": CALIBRATION_FORMAT,
         "dataset": str(ds.root),
         "camera": cam,
@@ -333,8 +362,14 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
         "poses": _pose_rows(res.fitted(), psi),
         "model": res.model.to_dict(),
         "method": res.method,
-        f"model_{'paper' if res.method == 'rigid' else 'rigid'}": other.to_dict(),
-        f"poses_{'paper' if res.method == 'rigid' else 'rigid'}": _pose_rows(res.fitted(other), psi),
+    }
+    for name, m in res.models.items():
+        if name != res.method:
+            out[f"model_{name}"] = m.to_dict()
+            out[f"poses_{name}"] = _pose_rows(res.fitted(m), psi)
+    if res.joint_model is not None:
+        out["sigma"] = sigma_block(res.joint_model, res.positions)
+    out.update({
         "boards": [{**b.plane.to_dict(), "reprojection_rms_px": float(b.reprojection_rms_px[0]),
                     "pnp": {**b.plane_pnp.to_dict(),
                             "reprojection_rms_px": float(b.reprojection_rms_px[1])}}
@@ -343,7 +378,32 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
         "warnings": list(res.warnings),
         "provenance": {"lidarcal_version": __version__, "dataset_sha256": dataset_hash(ds),
                        "command": command},
-    }
+    })
+    return out
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def sigma_block(model, positions: list[PositionResult]) -> dict:
+    """``calibration.json`` ``sigma``: 1-sigma uncertainties of the joint fit (issue 6).
+
+    Per position the centre (mm, RMS length of the error vector) and the z and x axes
+    (deg); for the turntable axis its direction (deg) and its position near the LiDAR
+    (mm). ``null`` marks a quantity the data do not determine. The full covariance of
+    the 10 rig parameters is ``model.covariance``.
+    """
+    psi = np.array([p.psi_deg for p in positions], dtype=float)
+    cols = model.sigma_columns(psi)
+    rows = [{"index": p.index, "psi_deg": p.psi_deg,
+             **{q: _finite_or_none(cols[q][j]) for q in ("centre_mm", "z_axis_deg", "x_axis_deg")}}
+            for j, p in enumerate(positions)]
+    return {"level": "1-sigma", "method": "joint",
+            "axis_direction_deg": _finite_or_none(cols["axis_direction_deg"][0]),
+            "axis_point_mm": _finite_or_none(cols["axis_point_mm"][0]),
+            "noise": {k: float(v) for k, v in model.noise.items()},
+            "poses": rows}
 
 
 def write_calibration(res: CalibrationResult, out_dir: str | os.PathLike,

@@ -126,7 +126,8 @@ def _poses(rows: list[dict] | None) -> dict[int, Pose]:
 
 
 def model_poses(cal: dict, kind: str) -> dict[int, Pose]:
-    """Poses of pose function ``kind`` ("paper" or "rigid") at the positions, from calibration.json."""
+    """Poses of pose function ``kind`` ("paper", "rigid" or "joint") at the positions, from
+    calibration.json."""
     if cal.get("method") == kind:
         return _poses(cal.get("poses"))
     return _poses(cal.get(f"poses_{kind}"))
@@ -145,7 +146,7 @@ def comparisons(cal: dict, truth: dict | None) -> dict[str, pd.DataFrame]:
     psi = {int(r["index"]): float(r["psi_deg"]) for r in cal.get("samples", [])}
     samples = _poses(cal.get("samples"))
     out: dict[str, pd.DataFrame] = {}
-    models = [k for k in ("paper", "rigid") if model_poses(cal, k)]
+    models = [k for k in ("paper", "rigid", "joint") if model_poses(cal, k)]
     for k in models:
         out[f"{k} function vs samples"] = comparison(model_poses(cal, k), samples, psi)
     if truth is not None and truth.get("poses"):
@@ -226,7 +227,7 @@ def axes_table(cal: dict, truth: dict | None) -> pd.DataFrame:
     taxis = None
     if truth is not None and truth.get("axis"):
         taxis = Axis.from_point_direction(truth["axis"]["point_mm"], truth["axis"]["direction"])
-    for key in ("model", "model_paper", "model_rigid"):
+    for key in ("model", "model_paper", "model_rigid", "model_joint"):
         d = cal.get(key)
         if not isinstance(d, dict):
             continue
@@ -791,8 +792,9 @@ def _section2(inp: ReportInputs, fig: _Figures, t1: pd.DataFrame, cmp: dict) -> 
         out.append(typst_table(["pose function", "direction", "point (mm, foot from camera origin)",
                                 "dir. err. (deg)", "dist. err. (mm)"], rows, size="8pt"))
         out.append("'paper': the paper's chain (circle fits, eqs. 15-27); 'rigid': one rigid "
-                   "motion about the axis fitted to all samples with the known turntable angles. "
-                   "Errors against truth.json (distance between the lines near the LiDAR) when "
+                   "motion about the axis fitted to all samples with the known turntable angles; "
+                   "'joint': the same rigid motion fitted to every scan point and stripe centre "
+                   "at once (beyond the paper). Errors against truth.json (distance between the lines near the LiDAR) when "
                    "present.\n")
     out.append("== 2.3-2.5 Pose function and Table 1\n")
     out.append(fig("trajectories", lambda: _plot_traj(inp),

@@ -542,23 +542,25 @@ def laser_plane_from_lines(points: tuple[np.ndarray, np.ndarray],
     return fit_plane(np.vstack(samples), np.concatenate(weights))
 
 
-_CROP_CACHE: list = []  # [(board, shape, albedo, geometry)]: the same boards serve every image
+_CROP_CACHE: list = []  # [(board, other board, (shape, albedo), geometry)]: the same boards serve every image
 
 
-def _board_crop(img: np.ndarray, board: BoardView, albedo: bool):
+def _board_crop(img: np.ndarray, board: BoardView, albedo: bool, other: BoardView | None = None):
     """The crop of ``img`` around one board's outline that :func:`stripe_centres` would use
     with the full mask ``board.mask``: (image crop, mask crop, blackness crop or None, origin).
 
     Only the crop is rasterised and sliced (no full-size mask or blackness map); the
-    mask and blackness crops depend on the board alone and are kept for the next image.
+    mask and blackness crops depend on the boards alone and are kept for the next image.
+    The mask is ``board.stripe_outline_px`` (the pattern and half a square of its white
+    border; ``outline_px`` when absent) minus the ``other`` board's ``outline_px``.
     """
     key = (img.shape[:2], albedo)
-    for b, k, geo in _CROP_CACHE:
-        if b is board and k == key:
+    for b, o, k, geo in _CROP_CACHE:
+        if b is board and o is other and k == key:
             break
     else:
-        geo = _board_crop_geometry(img.shape[:2], board, albedo)
-        _CROP_CACHE.insert(0, (board, key, geo))
+        geo = _board_crop_geometry(img.shape[:2], board, albedo, other)
+        _CROP_CACHE.insert(0, (board, other, key, geo))
         del _CROP_CACHE[4:]
     if geo is None:
         return None
@@ -567,14 +569,19 @@ def _board_crop(img: np.ndarray, board: BoardView, albedo: bool):
     return img[y_lo:y_lo + h, x_lo:x_lo + w], msub, bsub, (x_lo, y_lo)
 
 
-def _board_crop_geometry(shape: tuple[int, int], board: BoardView, albedo: bool):
+def _board_crop_geometry(shape: tuple[int, int], board: BoardView, albedo: bool,
+                         other: BoardView | None = None):
     """Mask crop, blackness crop (finite, float32) or None, and origin for :func:`_board_crop`."""
     H, W = shape
-    poly = np.round(board.outline_px).astype(np.int32)
+    outline = getattr(board, "stripe_outline_px", None)
+    poly = np.round(board.outline_px if outline is None else outline).astype(np.int32)
     bx0, by0 = np.clip(poly.min(0), 0, [W - 1, H - 1])
     bx1, by1 = np.clip(poly.max(0) + 1, 1, [W, H])
     small = np.zeros((by1 - by0, bx1 - bx0), np.uint8)
     cv2.fillPoly(small, [poly], 1, offset=(-int(bx0), -int(by0)))
+    if other is not None and outline is not None:
+        cv2.fillPoly(small, [np.round(other.outline_px).astype(np.int32)], 0,
+                     offset=(-int(bx0), -int(by0)))
     small = small.astype(bool)
     if not small.any():
         return None
@@ -601,7 +608,7 @@ def _board_crop_geometry(shape: tuple[int, int], board: BoardView, albedo: bool)
 
 
 def _board_inputs(img: np.ndarray, boards: tuple[BoardView, BoardView], albedo: bool):
-    return [_board_crop(img, b, albedo) for b in boards]
+    return [_board_crop(img, b, albedo, boards[1 - k]) for k, b in enumerate(boards)]
 
 
 def _crop_centres(crop, camera: CameraModel, min_snr: float, rho: float | None,

@@ -83,6 +83,7 @@ from .turntable import axis_distance_mm, fit_paper, fit_rigid
 
 METHODS = ("samples", "paper", "rigid", "joint", "joint_planes", "scan_only")
 QUANTITIES = ("centre_mm", "z_axis_deg", "x_axis_deg")
+SWEPT = ("range_noise_mm", "stripe_noise_px", "n_positions")
 PAPER_SPAN_DEG = 21.5  # the paper: 87 positions 0.25 deg apart
 
 
@@ -366,6 +367,9 @@ def summarise(df: pd.DataFrame) -> pd.DataFrame:
         fit_s=("fit_s", "first"))
     out = per_rig.groupby(["setting", "method"]).mean()
     out["rigs"] = per_rig.groupby(["setting", "method"]).size()
+    for col in SWEPT:  # the setting's swept parameters, for plotting against them
+        if col in ok:
+            out[col] = ok.groupby(["setting", "method"])[col].first().reindex(out.index)
     cov = coverage(ok)
     out["coverage_2sigma"] = cov["all"].reindex(out.index)
     if "sigma_axis_direction_deg" in ok:
@@ -430,9 +434,43 @@ def main(argv: Sequence[str] | None = None) -> int:
     df = run_study(settings, n, args.seed, workers=args.workers, progress=sys.stderr.isatty())
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     df.to_csv(out, index=False)
+    summary = summarise(df)
+    summary.to_csv(summary_path(out))
     with pd.option_context("display.width", 200, "display.max_columns", 20):
-        print(summarise(df).to_string(float_format=lambda v: f"{v:.4g}"))
+        print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
     return 0
+
+
+def summary_path(out: str | os.PathLike) -> str:
+    """Where :func:`main` writes the :func:`summarise` table next to the per-position rows."""
+    root, _ = os.path.splitext(os.fspath(out))
+    return root + "_summary.csv"
+
+
+def plot_sweeps(summary: pd.DataFrame, quantity: str = "centre_mm",
+                methods: Sequence[str] = ("paper", "rigid", "joint", "scan_only")):
+    """Mean true error of each method versus range noise, stripe noise and number of
+    positions (one panel each; the baseline setting is a point of every sweep)."""
+    import matplotlib.pyplot as plt
+
+    s = summary.reset_index()
+    base = s[s.setting == "baseline"]
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), constrained_layout=True)
+    for ax, (col, prefix, label) in zip(axes, (("range_noise_mm", "range=", "range noise (mm)"),
+                                                ("stripe_noise_px", "stripe=", "stripe noise (px)"),
+                                                ("n_positions", "positions=", "positions"))):
+        sel = pd.concat([base, s[s.setting.str.startswith(prefix)]])
+        for m in methods:
+            d = sel[sel.method == m].sort_values(col)
+            if len(d):
+                ax.plot(d[col], d[quantity], "o-", label=m)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(label)
+        ax.set_ylabel(f"mean true error, {quantity}")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend()
+    return fig
 
 
 if __name__ == "__main__":

@@ -191,3 +191,84 @@ def test_real_process_exit_code_and_debug_traceback(dataset_copy, tmp_path):
 def test_missing_dataset_folder(tmp_path, capsys):
     code, _, err = run(["calibrate", str(tmp_path / "nope"), "--out", str(tmp_path)], capsys)
     assert code == 2 and "nope: not a dataset folder" in err
+
+
+def _bundled_subset(tmp_path, n=8):
+    """The first ``n`` positions of the bundled dataset (files referenced, not copied)."""
+    from conftest import BUNDLED
+
+    dst = tmp_path / "sub"
+    dst.mkdir()
+    (dst / "dataset.json").write_text((BUNDLED / "dataset.json").read_text())
+    (dst / "board.png").symlink_to(BUNDLED / "board.png")
+    rows = (BUNDLED / "positions.csv").read_text().splitlines()[: n + 1]
+    out = [rows[0]]
+    for r in rows[1:]:
+        i, psi, img, scan = r.split(",")
+        out.append(",".join([i, psi, str(BUNDLED / img), str(BUNDLED / scan)]))
+    (dst / "positions.csv").write_text("\n".join(out) + "\n")
+    return dst
+
+
+def test_failed_position_in_worker_processes(tmp_path, capsys):
+    """Enough positions for the worker pool: a broken image comes back from a worker as a clear
+    error (exit 2), or as a skipped position with --skip-failed."""
+    ds = _bundled_subset(tmp_path)
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    text = (ds / "positions.csv").read_text().splitlines()
+    i, psi, _, scan = text[4].split(",")
+    text[4] = ",".join([i, psi, str(bad), scan])
+    (ds / "positions.csv").write_text("\n".join(text) + "\n")
+    code, _, err = run(["calibrate", str(ds), "--out", str(tmp_path / "a"), "--method", "rigid"],
+                       capsys)
+    assert code == 2 and err.startswith("error: ") and "broken.png" in err, err
+    assert not (tmp_path / "a" / "calibration.json").exists()
+    code, _, err = run(["calibrate", str(ds), "--out", str(tmp_path / "b"), "--method", "rigid",
+                        "--skip-failed"], capsys)
+    assert code == 0, err
+    cal = json.loads((tmp_path / "b" / "calibration.json").read_text())
+    assert [s["index"] for s in cal["samples"]] == [0, 1, 2, 4, 5, 6, 7]
+    assert "broken.png" in cal["skipped"][0]["reason"]
+
+
+def test_dataset_error_survives_pickling():
+    import pickle
+
+    from lidarcal.dataset import DatasetError
+
+    e = pickle.loads(pickle.dumps(DatasetError("a/b.png", "cannot be decoded")))
+    assert isinstance(e, DatasetError) and e.path == "a/b.png" and str(e) == "a/b.png: cannot be decoded"
+
+
+def test_methods_fill_poses_and_keep_the_others(small_dataset, tmp_path, capsys):
+    """Default joint: 'poses' from the joint fit, a 'sigma' block, the rigid and paper
+    functions kept; --method rigid: no joint fit, the paper's chain kept."""
+    assert run(["calibrate", str(small_dataset), "--out", str(tmp_path / "j")], capsys)[0] == 0
+    cal = json.loads((tmp_path / "j" / "calibration.json").read_text())
+    assert cal["method"] == "joint" and cal["model"]["type"] == "joint"
+    assert {"model_rigid", "poses_rigid", "model_paper", "poses_paper", "sigma"} <= set(cal)
+    assert len(cal["model"]["covariance"]) == 10
+    sig = cal["sigma"]
+    assert sig["level"] == "1-sigma" and len(sig["poses"]) == len(cal["poses"])
+    truth = json.loads((small_dataset / "truth.json").read_text())
+    err = pose_errors({p["index"]: Pose.from_dict(p) for p in cal["poses"]}, truth)
+    for row, e in zip(sig["poses"], err.itertuples()):
+        assert row["index"] == e.index
+        assert 0 < row["centre_mm"] < 1.0 and 0 < row["z_axis_deg"] < 0.05
+        assert e.centre_mm <= 4 * row["centre_mm"]  # the error bars mean something
+    assert run(["calibrate", str(small_dataset), "--out", str(tmp_path / "r"), "--method", "rigid"],
+               capsys)[0] == 0
+    cal_r = json.loads((tmp_path / "r" / "calibration.json").read_text())
+    assert cal_r["method"] == "rigid" and "sigma" not in cal_r and "model_joint" not in cal_r
+    assert cal_r["poses"] == cal["poses_rigid"]
+    psi = cal["poses"][1]["psi_deg"]
+    code, out, _ = run(["pose", str(tmp_path / "j"), "--psi", str(psi), "--model", "rigid"], capsys)
+    assert code == 0 and "1-sigma" not in out
+    T = np.array(cal["poses_rigid"][1]["T_mm"])
+    assert np.allclose([float(v) for v in out.split("T_mm = [")[1].split("]")[0].split()], T,
+                       atol=1e-5)
+    code, out, _ = run(["pose", str(tmp_path / "j"), "--psi", str(psi)], capsys)
+    assert code == 0
+    shown = float(out.split("1-sigma: centre ")[1].split(" mm")[0])
+    assert shown == pytest.approx(sig["poses"][1]["centre_mm"], rel=1e-3)
