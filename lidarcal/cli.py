@@ -187,6 +187,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # a bug, or input we did not foresee: still one line, no traceback
+        if args.debug:
+            traceback.print_exc()
+        msg = " ".join(str(e).split())
+        print(f"error: unexpected {type(e).__name__}: {msg}; rerun with --debug for the traceback "
+              "and please report it", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

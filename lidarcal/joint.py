@@ -284,12 +284,20 @@ class _Groups:
         self.board_of_group = np.arange(self.n_groups) % 2
         self.n = np.bincount(self.gid, minlength=self.n_groups).astype(float)
         sc = np.zeros(len(pos))
+        order = np.argsort(self.gid, kind="stable")
+        cuts = np.searchsorted(self.gid[order], np.arange(self.n_groups + 1))
         for g in np.flatnonzero(self.n >= 3):
-            m = self.gid == g
+            m = order[cuts[g]:cuts[g + 1]]
             q = coords[m] - coords[m].mean(0)
             _, _, vt = np.linalg.svd(q, full_matrices=False)
             sc[m] = q @ vt[0]
         self.sc = sc
+        # residuals come grouped (position by position, board 0 then 1): group sums of a
+        # whole Jacobian are then one np.add.reduceat instead of a bincount per column
+        self._sorted = bool(np.all(self.gid[1:] >= self.gid[:-1]))
+        starts = np.searchsorted(self.gid, np.arange(self.n_groups))
+        self._nonempty = np.flatnonzero(self.n > 0)
+        self._starts = starts[self._nonempty]
         self.sigma = np.ones(2)
         self.var0 = np.zeros(2)
         self.var1 = np.zeros(2)
@@ -348,7 +356,21 @@ class _Groups:
         """:meth:`whiten` applied to every column of a Jacobian."""
         if J.shape[0] == 0:
             return J
-        return np.column_stack([self.whiten(J[:, j]) for j in range(J.shape[1])])
+        if not self._sorted:
+            return np.column_stack([self.whiten(J[:, j]) for j in range(J.shape[1])])
+        wJ = J * self.w[:, None]
+        m0 = self._group_sums(wJ) / np.maximum(self.n, 1e-300)[:, None]
+        m1 = self._group_sums(wJ * self.sc[:, None]) / self.ss[:, None]
+        g = self.gid
+        return ((J - self.g0[g][:, None] * m0[g] - (self.g1[g] * self.sc)[:, None] * m1[g])
+                / self.sig_g[g][:, None])
+
+    def _group_sums(self, A: np.ndarray) -> np.ndarray:
+        """Per-group column sums of ``A`` (rows grouped by ``gid``, sorted)."""
+        out = np.zeros((self.n_groups, A.shape[1]))
+        if len(self._nonempty):
+            out[self._nonempty] = np.add.reduceat(A, self._starts, axis=0)
+        return out
 
     def estimate(self, r: np.ndarray, floor: float) -> None:
         """Method-of-moments noise components from residuals ``r`` at a fit (see class doc).
@@ -485,7 +507,7 @@ class _Problem:
         n = nb[b]
         dr = np.concatenate([n * xs, n * ys, np.zeros((len(p), 3)), n], 1)  # wrt [Rx Ry Rz T]
         Js = np.zeros((len(p), n_par))
-        Js[:, :N_RIG] = np.einsum("mi,mij->mj", dr, G[p])
+        Js[:, :N_RIG] = _rows_times(dr, G, p)
         if n_par > N_RIG:
             X = R[p, :, 0] * xs + R[p, :, 1] * ys + T[p]
             drb = np.concatenate([X, -np.ones((len(p), 1))], 1)  # wrt [n, d]
@@ -502,7 +524,7 @@ class _Problem:
         z = R[p, :, 2]
         dr = np.concatenate([np.zeros((len(p), 6)), (P - T[p]) * s, -z * s], 1)
         Jp = np.zeros((len(p), n_par))
-        Jp[:, :N_RIG] = np.einsum("mi,mij->mj", dr, G[p])
+        Jp[:, :N_RIG] = _rows_times(dr, G, p)
         if n_par > N_RIG:
             zr = np.einsum("ij,ij->i", z, ray)[:, None]
             drb = np.concatenate([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn], 1)
@@ -564,6 +586,23 @@ class _Problem:
         perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
         du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
         self.scale_px = perp / np.maximum(du, 1e-9)
+
+
+def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Row ``m`` of the result is ``dr[m] @ G[p[m]]``: (M, k) x (N, k, n) -> (M, n).
+
+    Rows sorted by position (as :func:`build_joint_data` makes them) take one small
+    product per position instead of gathering an (M, k, n) copy of ``G``.
+    """
+    if len(p) == 0 or np.any(p[1:] < p[:-1]):
+        return np.einsum("mi,mij->mj", dr, G[p])
+    out = np.empty((len(p), G.shape[2]))
+    cuts = np.searchsorted(p, np.arange(G.shape[0] + 1))
+    for i in range(G.shape[0]):
+        a, b = cuts[i], cuts[i + 1]
+        if b > a:
+            out[a:b] = np.einsum("mi,ij->mj", dr[a:b], G[i])
+    return out
 
 
 def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:

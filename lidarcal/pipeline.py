@@ -123,7 +123,11 @@ def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView,
     except ValueError as e:
         raise DatasetError(pos.scan, f"{e}; check this position or drop it with "
                                      f"--skip {pos.index}") from None
-    pose = single_shot_pose(cl.l, cl.E, cl.alpha, ll, lidar.z_axis_hint)
+    try:
+        pose = single_shot_pose(cl.l, cl.E, cl.alpha, ll, lidar.z_axis_hint)
+    except ValueError as e:
+        raise DatasetError(pos.scan, f"no pose from this scan and stripe image ({e}); check this "
+                                     f"position or drop it with --skip {pos.index}") from None
     return PositionResult(pos.index, pos.psi_deg, cl, seg, ll, pose)
 
 
@@ -132,6 +136,11 @@ def _solve_safe(args) -> PositionResult | DatasetError:
         return _solve_position(*args)
     except DatasetError as e:
         return e
+    except Exception as e:  # unforeseen input: this position fails alone, named, skippable
+        pos = args[0]
+        return DatasetError(pos.stripe_image, f"position {pos.index} could not be solved "
+                                              f"({type(e).__name__}: {e}); check it or drop it "
+                                              f"with --skip {pos.index}")
 
 
 # per-worker constants of a run (camera, boards with their blackness maps, LiDAR spec), set
