@@ -685,7 +685,10 @@ class JointModel:
         return {"psi_deg": psi, **out}
 
     def to_dict(self) -> dict:
-        return {"type": "joint", "axis": self.axis.to_dict(), "psi_ref_deg": float(self.psi_ref_deg),
+        from .turntable import RIGID_FORMULA
+
+        return {"type": "joint", "formula": RIGID_FORMULA, "axis": self.axis.to_dict(),
+                "psi_ref_deg": float(self.psi_ref_deg),
                 "pose_ref": {"R": self.R_ref.tolist(), "T_mm": self.T_ref.tolist()},
                 "covariance": np.where(np.isfinite(self.cov), self.cov, 1e300).tolist(),
                 "covariance_parameters": ["axis_direction_u", "axis_direction_v", "axis_point_u_mm",

@@ -140,6 +140,29 @@ def comparison(est: dict[int, Pose], ref: dict[int, Pose], psi: dict[int, float]
     return pd.DataFrame(rows, columns=["index", "psi_deg", *COMPARISON_COLUMNS])
 
 
+def uncertainty_summary(cal: dict, truth: dict | None) -> str:
+    """The joint fit's reported 1-sigma (mean over positions) and, with ``truth.json``, how
+    often the true error of ``poses`` lies within 2 sigma; "" without a ``sigma`` block."""
+    sig = cal.get("sigma")
+    if not isinstance(sig, dict) or not sig.get("poses"):
+        return ""
+    qs = ("centre_mm", "z_axis_deg", "x_axis_deg")
+    rows = {int(r["index"]): r for r in sig["poses"]}
+    val = lambda r, q: np.inf if r.get(q) is None else float(r[q])
+    mean = {q: float(np.mean([val(r, q) for r in rows.values()])) for q in qs}
+    out = (f"centre {fnum(mean['centre_mm'], 3)} mm, z axis {fnum(mean['z_axis_deg'], 4)} deg, "
+           f"x axis {fnum(mean['x_axis_deg'], 4)} deg, axis direction "
+           f"{fnum(sig.get('axis_direction_deg') or np.inf, 4)} deg")
+    if truth is not None and truth.get("poses"):
+        tp, est = _poses(truth["poses"]), _poses(cal.get("poses"))
+        inside = [pose_error(est[i], tp[i])[q] <= 2 * val(r, q)
+                  for i, r in rows.items() if i in tp and i in est for q in qs]
+        if inside:
+            out += (f"; the true error lies within 2 sigma for {100 * np.mean(inside):.0f} % of "
+                    "positions x quantities")
+    return out
+
+
 def comparisons(cal: dict, truth: dict | None) -> dict[str, pd.DataFrame]:
     """Every Table 1 comparison available: each pose function vs the samples (the
     paper's metric), and, with ``truth.json``, vs the true poses (and the samples vs truth)."""
@@ -499,6 +522,9 @@ def _summary_section(inp: ReportInputs, t1: pd.DataFrame, t2sum: dict, cmp: dict
                     (f"centre {fnum(r['centre_mm_mean'], 3)} / {fnum(r['centre_mm_max'], 3)} mm, "
                     f"z axis {fnum(r['z_axis_deg_mean'], 4)} / {fnum(r['z_axis_deg_max'], 4)} deg, "
                     f"x axis {fnum(r['x_axis_deg_mean'], 4)} / {fnum(r['x_axis_deg_max'], 4)} deg")))
+    unc = uncertainty_summary(cal, inp.truth)
+    if unc:
+        key.append(("Uncertainty (joint fit, 1-sigma)", unc))
     if t2sum.get("trials"):
         s = (f"{t2sum['trials']} trials, mean diameter {fnum(t2sum.get('mean_diameter_mm'), 2)} mm")
         if "mean_abs_error_mm" in t2sum:

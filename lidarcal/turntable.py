@@ -44,6 +44,9 @@ from .geometry import (
 )
 
 MIN_POSITIONS = 3
+RIGID_FORMULA = ("R(psi) = Rot(direction, psi - psi_ref_deg) @ pose_ref.R; T(psi) = point_mm + "
+                 "Rot(direction, psi - psi_ref_deg) @ (pose_ref.T_mm - point_mm); Rot is "
+                 "right-handed about axis.direction")
 # median of the chi distribution with 3 and 2 degrees of freedom: converts the median
 # length of an isotropic Gaussian residual vector into its per-component sigma
 _CHI3_MEDIAN = float(np.sqrt(chdtri(3, 0.5)))
@@ -353,7 +356,8 @@ class RigidModel:
         return _poses_out(psi_deg, R, T)
 
     def to_dict(self) -> dict:
-        out = {"type": "rigid", "axis": self.axis.to_dict(), "psi_ref_deg": float(self.psi_ref_deg),
+        out = {"type": "rigid", "formula": RIGID_FORMULA, "axis": self.axis.to_dict(),
+               "psi_ref_deg": float(self.psi_ref_deg),
                "pose_ref": {"R": self.R_ref.tolist(), "T_mm": self.T_ref.tolist()}}
         if "sigma" in self.info:
             out["noise"] = {k: float(v) for k, v in self.info["sigma"].items()}

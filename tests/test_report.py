@@ -270,3 +270,22 @@ def test_workbook_no_notebooks(tmp_path):
                           str(tmp_path / "x.pdf")], capture_output=True, text=True, timeout=60, check=False)
     assert res.returncode == 1 and "no numbered notebooks" in res.stderr
     assert not (tmp_path / "x.pdf").exists()
+
+
+def test_uncertainty_summary_counts_coverage():
+    """Two positions, errors 0.1 mm / 0.3 mm against sigma 0.1 mm: the 2-sigma count is exact."""
+    from lidarcal.geometry import Pose
+    from lidarcal.report import uncertainty_summary
+
+    I = np.eye(3)
+    truth = {"poses": [{"index": i, **Pose(I, np.zeros(3)).to_dict()} for i in (0, 1)]}
+    cal = {"poses": [{"index": 0, **Pose(I, np.array([0.1, 0, 0])).to_dict()},
+                     {"index": 1, **Pose(I, np.array([0.3, 0, 0])).to_dict()}],
+           "sigma": {"axis_direction_deg": 0.01, "poses": [
+               {"index": i, "centre_mm": 0.1, "z_axis_deg": 0.001, "x_axis_deg": None}
+               for i in (0, 1)]}}
+    text = uncertainty_summary(cal, truth)
+    assert text.startswith("centre 0.100 mm")
+    # centre inside at 0 only; z inside at both (no rotation error); x sigma unknown -> inside
+    assert "within 2 sigma for 83 %" in text
+    assert uncertainty_summary({"poses": []}, truth) == ""

@@ -376,3 +376,23 @@ def test_sensitivity_study_small():
     # the axis gets better with the span
     assert rig_.loc[(20, 20.0), "axis_offset_mm"] < rig_.loc[(20, 1.0), "axis_offset_mm"]
     assert isinstance(PaperModel, type)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(-60, 60), st.integers(0, 10_000))
+def test_stored_rigid_formula_is_what_pose_computes(psi, seed):
+    """calibration.json states the rigid/joint formula so other tools can evaluate 'model'
+    without lidarcal: applying it by hand to the stored numbers gives pose(psi)."""
+    rng = np.random.default_rng(seed)
+    k = unit(rng.normal(size=3))
+    R0 = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    m = RigidModel(Axis.from_point_direction(rng.normal(0, 100, 3), k), 10.0, R0,
+                   rng.normal(0, 200, 3))
+    d = json.loads(json.dumps(m.to_dict()))
+    assert "Rot(direction, psi - psi_ref_deg)" in d["formula"]
+    kk, a = np.array(d["axis"]["direction"]), np.array(d["axis"]["point_mm"])
+    Q = Rotation.from_rotvec(np.radians(psi - d["psi_ref_deg"]) * kk).as_matrix()
+    R = Q @ np.array(d["pose_ref"]["R"])
+    T = a + Q @ (np.array(d["pose_ref"]["T_mm"]) - a)
+    p = m.pose(psi)
+    assert np.allclose(R, p.R, atol=1e-12) and np.allclose(T, p.T, atol=1e-9)
