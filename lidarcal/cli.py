@@ -187,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
-    except Exception as e:  # a bug, or input we did not foresee: still one line, no traceback
+    except Exception as e:  # noqa: BLE001  (a bug or unforeseen input: still one line, no traceback)
         if args.debug:
             traceback.print_exc()
         msg = " ".join(str(e).split())

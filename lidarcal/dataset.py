@@ -88,7 +88,7 @@ class LidarSpec:
 
     @property
     def n_beams(self) -> int:
-        return int(round((self.angle_max_deg - self.angle_min_deg) / self.angle_step_deg)) + 1
+        return round((self.angle_max_deg - self.angle_min_deg) / self.angle_step_deg) + 1
 
     def angles_deg(self) -> np.ndarray:
         return self.angle_min_deg + np.arange(self.n_beams) * self.angle_step_deg

@@ -55,7 +55,7 @@ class Plane:
     d: float
 
     @staticmethod
-    def from_normal_point(normal: np.ndarray, point: np.ndarray) -> "Plane":
+    def from_normal_point(normal: np.ndarray, point: np.ndarray) -> Plane:
         n = unit(normal)
         d = float(n @ np.asarray(point, dtype=float))
         if d < 0:
@@ -213,7 +213,7 @@ class Pose:
         return {"R": np.asarray(self.R).tolist(), "T_mm": np.asarray(self.T).tolist()}
 
     @staticmethod
-    def from_dict(d: dict) -> "Pose":
+    def from_dict(d: dict) -> Pose:
         return Pose(np.asarray(d["R"], dtype=float), np.asarray(d["T_mm"], dtype=float))
 
 

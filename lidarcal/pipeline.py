@@ -18,7 +18,6 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -26,14 +25,31 @@ import numpy as np
 from . import __version__
 from .board import BoardView, find_v_boards
 from .camera import IntrinsicsResult, calibrate_intrinsics
-from .dataset import (CALIBRATION_FORMAT, MEASUREMENTS_FORMAT, CameraModel, Dataset, DatasetError,
-                      ImagePrefetch, LidarSpec, Position, load_dataset, read_image, read_scan,
-                      read_sweep, write_json_atomic)
+from .dataset import (
+    CALIBRATION_FORMAT,
+    MEASUREMENTS_FORMAT,
+    CameraModel,
+    Dataset,
+    DatasetError,
+    ImagePrefetch,
+    LidarSpec,
+    Position,
+    load_dataset,
+    read_image,
+    read_scan,
+    read_sweep,
+    write_json_atomic,
+)
 from .geometry import Pose
 from .pose import single_shot_pose
 from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
-from .stripe import (CameraLines, camera_lines, estimate_reflectance_ratio, reflectance_ratio,
-                     reflectance_samples)
+from .stripe import (
+    CameraLines,
+    camera_lines,
+    estimate_reflectance_ratio,
+    reflectance_ratio,
+    reflectance_samples,
+)
 from .turntable import fit_paper, fit_rigid
 
 if TYPE_CHECKING:
@@ -136,7 +152,7 @@ def _solve_safe(args) -> PositionResult | DatasetError:
         return _solve_position(*args)
     except DatasetError as e:
         return e
-    except Exception as e:  # unforeseen input: this position fails alone, named, skippable
+    except Exception as e:  # noqa: BLE001  (unforeseen input: the position fails alone, named)
         pos = args[0]
         return DatasetError(pos.stripe_image, f"position {pos.index} could not be solved "
                                               f"({type(e).__name__}: {e}); check it or drop it "

@@ -23,7 +23,7 @@ def run(argv, capsys):
 
 
 def test_calibrate_writes_the_contract_and_is_accurate(small_dataset, tmp_path, capsys):
-    code, out, err = run(["calibrate", str(small_dataset), "--out", str(tmp_path / "cal")], capsys)
+    code, _, err = run(["calibrate", str(small_dataset), "--out", str(tmp_path / "cal")], capsys)
     assert code == 0, err
     cal = json.loads((tmp_path / "cal" / "calibration.json").read_text())
     truth = json.loads((small_dataset / "truth.json").read_text())
@@ -161,8 +161,8 @@ def test_bad_input_one_line_exit_2_no_output(dataset_copy, tmp_path, capsys, cas
 
 def test_skip_failed_drops_a_bad_position_with_a_warning(dataset_copy, tmp_path, capsys):
     _corrupt(dataset_copy, "scan one segment")
-    code, out, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path), "--skip-failed"],
-                         capsys)
+    code, _, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path), "--skip-failed"],
+                       capsys)
     assert code == 0, err
     assert "warning: skipped position 1" in err
     cal = json.loads((tmp_path / "calibration.json").read_text())
@@ -181,10 +181,11 @@ def test_explicit_skip(dataset_copy, tmp_path, capsys):
 def test_real_process_exit_code_and_debug_traceback(dataset_copy, tmp_path):
     _corrupt(dataset_copy, "unknown format")
     cmd = [sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out", str(tmp_path)]
-    p = subprocess.run(cmd, capture_output=True, text=True)
+    p = subprocess.run(cmd, capture_output=True, text=True, check=False)
     assert p.returncode == 2
     assert p.stderr.count("\n") == 1 and p.stderr.startswith("error: ")
-    p = subprocess.run(cmd[:3] + ["--debug"] + cmd[3:], capture_output=True, text=True)
+    p = subprocess.run(cmd[:3] + ["--debug"] + cmd[3:], capture_output=True, text=True,
+                       check=False)
     assert p.returncode == 2 and "Traceback" in p.stderr
 
 

@@ -10,8 +10,14 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.dataset import (DatasetError, load_dataset, read_image, read_scan, read_sweep,
-                              write_json_atomic)
+from lidarcal.dataset import (
+    DatasetError,
+    load_dataset,
+    read_image,
+    read_scan,
+    read_sweep,
+    write_json_atomic,
+)
 
 DATASET_JSON = {
     "format": "lidarcal-dataset/1",

@@ -4,14 +4,25 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from lidarcal.geometry import (Plane, Pose, angle_between_deg, fit_circle_2d, fit_circle_2d_algebraic,
-                               fit_circle_3d, fit_plane, fit_plane_algebraic, intersect_planes,
-                               nearest_rotation, plane_basis, rotate_perpendicular,
-                               rotation_about_axis)
+from lidarcal.geometry import (
+    Plane,
+    Pose,
+    angle_between_deg,
+    fit_circle_2d,
+    fit_circle_2d_algebraic,
+    fit_circle_3d,
+    fit_plane,
+    fit_plane_algebraic,
+    intersect_planes,
+    nearest_rotation,
+    plane_basis,
+    rotate_perpendicular,
+    rotation_about_axis,
+)
 
 unit_vectors = st.tuples(*[st.floats(-1, 1)] * 3).map(np.array).filter(
     lambda v: np.linalg.norm(v) > 0.1).map(lambda v: v / np.linalg.norm(v))
