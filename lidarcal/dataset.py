@@ -342,8 +342,15 @@ def _measurements(items: Any, root: Path, jpath: Path) -> list[MeasurementSpec]:
     return out
 
 
-def read_image(path: Path, image_size: tuple[int, int] | None = None) -> np.ndarray:
-    """An 8-bit PNG as a grayscale uint8 array (BGR is converted); size checked if given."""
+def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
+               colour: str = "gray") -> np.ndarray:
+    """An 8-bit PNG as a grayscale uint8 array; size checked if given.
+
+    A BGR(A) image becomes gray by OpenCV's luminance weights (``colour="gray"``,
+    for the bright board views) or by the brightest channel at each pixel
+    (``colour="max"``, for the dark stripe images: a red or green laser keeps its
+    full signal instead of 30 % or 59 % of it).
+    """
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "missing image; copy it again or drop this position")
@@ -353,11 +360,19 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None) -> np.ndar
     if img.dtype != np.uint8:
         raise DatasetError(path, f"expected an 8-bit image, got {img.dtype}")
     if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        if colour == "max":
+            img = np.ascontiguousarray(img[:, :, :3].max(axis=2))
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if image_size is not None and (img.shape[1], img.shape[0]) != tuple(image_size):
         raise DatasetError(path, f"image is {img.shape[1]}x{img.shape[0]}, expected "
                                  f"{image_size[0]}x{image_size[1]} (camera.image_size)")
     return img
+
+
+def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """A stripe image (dark frame, laser stripes) as uint8: colour images by their brightest channel."""
+    return read_image(path, image_size, colour="max")
 
 
 class ImagePrefetch:
@@ -386,7 +401,7 @@ class ImagePrefetch:
     def _run(self) -> None:
         for p in self._todo:
             try:
-                self._images[p.index] = read_image(p.stripe_image, self._size)
+                self._images[p.index] = read_stripe_image(p.stripe_image, self._size)
             except DatasetError as e:
                 self._images[p.index] = e
 

@@ -36,6 +36,7 @@ from .dataset import (
     Position,
     load_dataset,
     read_image,
+    read_stripe_image,
     read_scan,
     read_sweep,
     write_json_atomic,
@@ -169,7 +170,7 @@ def _stripe_image(pos: Position, camera: CameraModel) -> np.ndarray:
     """The stripe image of ``pos``: prefetched when available, else read now."""
     pre = _WORKER.get("images")
     img = None if pre is None else pre.get(pos)
-    return read_image(pos.stripe_image, camera.image_size) if img is None else img
+    return read_stripe_image(pos.stripe_image, camera.image_size) if img is None else img
 
 
 def _fork_context():

@@ -396,7 +396,7 @@ class _Detail:
 
 def _detail(inp: ReportInputs) -> _Detail:
     from . import pipeline
-    from .dataset import read_image, read_scan
+    from .dataset import read_image, read_scan, read_stripe_image
 
     ds, cal, res = inp.dataset, inp.cal, inp.result
     det = _Detail()
@@ -412,7 +412,7 @@ def _detail(inp: ReportInputs) -> _Detail:
     if pos is None:
         return det
     try:
-        det.stripe_image = read_image(pos.stripe_image, camera.image_size)
+        det.stripe_image = read_stripe_image(pos.stripe_image, camera.image_size)
         det.scan = read_scan(pos.scan, ds.lidar)
         found = [p for p in (res.positions if res is not None else []) if p.index == pos.index]
         det.solved = found[0] if found else _resolve_position(pos, camera, det.boards, ds, cal)

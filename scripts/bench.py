@@ -17,14 +17,14 @@ import tempfile
 import time
 from pathlib import Path
 
-from lidarcal.dataset import load_dataset, read_image, read_scan
+from lidarcal.dataset import load_dataset, read_scan, read_stripe_image
 
 
 def read_only(root: Path) -> float:
     t0 = time.perf_counter()
     ds = load_dataset(root)
     for p in ds.positions:
-        read_image(p.stripe_image)
+        read_stripe_image(p.stripe_image)
         read_scan(p.scan, ds.lidar)
     return time.perf_counter() - t0
 
