@@ -266,6 +266,17 @@ def test_refuses_to_overwrite(tmp_path: Path) -> None:
         simulate(tmp_path / "x", rig="nope")
 
 
+def _approx_equal(a, b, rel: float = 1e-12) -> bool:
+    """Same JSON structure; numbers equal to ``rel`` (relative, with an absolute floor of ``rel``)."""
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_approx_equal(a[k], b[k], rel) for k in a)
+    if isinstance(a, list):
+        return isinstance(b, list) and len(a) == len(b) and all(_approx_equal(x, y, rel) for x, y in zip(a, b))
+    if isinstance(a, float) or isinstance(b, float):
+        return abs(a - b) <= rel * max(1.0, abs(a), abs(b))
+    return a == b
+
+
 @pytest.mark.skipif(not (BUNDLED / "dataset.json").is_file(), reason="bundled dataset not generated")
 def test_bundled_dataset_regenerates(tmp_path: Path) -> None:
     """``simulate('data/paper_rig', seed=0, rig='paper')`` reproduces the bundled files (subset)."""
@@ -279,9 +290,11 @@ def test_bundled_dataset_regenerates(tmp_path: Path) -> None:
     rows = (BUNDLED / "positions.csv").read_text().splitlines()
     assert (out / "positions.csv").read_text().splitlines() == [rows[0]] + [rows[i + 1] for i in idx]
     new, old = (json.loads((p / "truth.json").read_text()) for p in (out, BUNDLED))
-    assert new["poses"] == [old["poses"][i] for i in idx]
+    # geometry to the last few ulps: the rendered bytes above are the real check, and
+    # BLAS / SIMD paths may round a normal's last digit differently on another CPU
+    assert _approx_equal(new["poses"], [old["poses"][i] for i in idx])
     for key in ("camera", "boards", "axis", "pose_ref", "hinge", "wall", "posts"):
-        assert new[key] == old[key], key
+        assert _approx_equal(new[key], old[key]), key
     dnew, dold = (json.loads((p / "dataset.json").read_text()) for p in (out, BUNDLED))
     for key in ("format", "camera", "v_board", "lidar", "synthetic"):
         assert dnew[key] == dold[key], key
