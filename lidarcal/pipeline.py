@@ -36,8 +36,8 @@ from .dataset import (
     Position,
     load_dataset,
     read_image,
-    read_stripe_image,
     read_scan,
+    read_stripe_image,
     read_sweep,
     write_json_atomic,
 )
