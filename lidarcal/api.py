@@ -61,7 +61,7 @@ def load_calibration(path: str | os.PathLike, model: str = "poses") -> Calibrati
     if not p.is_file():
         raise DatasetError(p, "missing; run 'lidarcal calibrate DATASET --out DIR' first")
     try:
-        data = json.loads(p.read_text())
+        data = json.loads(p.read_text(encoding="utf-8-sig"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DatasetError(p, f"not valid JSON ({e})") from None
     if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:

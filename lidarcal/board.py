@@ -360,7 +360,7 @@ def find_v_boards(image: np.ndarray, board: BoardSpec,
         if corners is None:
             raise ValueError(f"found {k} of the 2 chessboards of the V "
                              f"({board.inner_corners[0]}x{board.inner_corners[1]} inner corners); "
-                             "check v_board.inner_corners, lighting and focus")
+                             "check v_board.inner_corners in dataset.json, lighting and focus")
         view = board_view(camera, corners, board)
         if views:
             _check_distinct(views[0], view, board)

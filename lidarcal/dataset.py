@@ -141,7 +141,7 @@ class Dataset:
     def truth(self) -> dict | None:
         """``truth.json`` when present (synthetic datasets; evaluation only)."""
         p = self.root / "truth.json"
-        return json.loads(p.read_text()) if p.is_file() else None
+        return json.loads(p.read_text(encoding="utf-8-sig")) if p.is_file() else None
 
 
 def _num(value: Any, path: Path, key: str, positive: bool = False) -> float:
@@ -214,7 +214,7 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
     if not jpath.is_file():
         raise DatasetError(jpath, "missing; every dataset needs dataset.json (see dataset-format.md)")
     try:
-        raw = json.loads(jpath.read_text())
+        raw = json.loads(jpath.read_text(encoding="utf-8-sig"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DatasetError(jpath, f"not valid JSON ({e}); fix or re-export it") from None
     if not isinstance(raw, dict):
@@ -303,10 +303,10 @@ def read_csv_columns(path: Path, required: tuple[str, ...], expected: str,
     """
     try:
         if gzipped:
-            with gzip.open(path, "rt", newline="") as f:
+            with gzip.open(path, "rt", newline="", encoding="utf-8-sig") as f:
                 text = f.read()
         else:
-            with open(path, newline="") as f:
+            with open(path, newline="", encoding="utf-8-sig") as f:
                 text = f.read()
         rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
     except (UnicodeDecodeError, csv.Error, OSError, EOFError) as e:
@@ -448,7 +448,12 @@ def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
         raise DatasetError(path, f"row {row + 2}: negative range {rng[row]:g}; ranges must be >= 0")
     no_return = rng == 0
     if lidar is not None:
-        no_return |= (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
+        outside = (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
+        if np.all(outside | no_return) and np.count_nonzero(~no_return) >= 10:
+            raise DatasetError(path, f"every return is outside range_min_mm..range_max_mm "
+                                     f"({lidar.range_min_mm:g}..{lidar.range_max_mm:g}; median range "
+                                     f"{np.median(rng[~no_return]):g}); ranges must be in mm")
+        no_return |= outside
     rng[no_return] = np.nan
     return rng
 

@@ -239,8 +239,8 @@ def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]
     try:
         return find_v_boards(img, ds.v_board, camera)
     except ValueError as e:
-        raise DatasetError(ds.board_image, f"{e}; check v_board.inner_corners in dataset.json "
-                                           "and that both boards are fully in view") from None
+        raise DatasetError(ds.board_image, f"{e}; both boards must be fully "
+                                           "in view") from None
 
 
 def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),

@@ -76,7 +76,7 @@ def _read_json(path: Path, what: str, fmt_prefix: str) -> dict:
     if not p.is_file():
         raise DatasetError(p, f"missing; give the {what} written by lidarcal")
     try:
-        data = json.loads(p.read_text())
+        data = json.loads(p.read_text(encoding="utf-8-sig"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DatasetError(p, f"not valid JSON ({e})") from None
     if not isinstance(data, dict) or not str(data.get("format", "")).startswith(fmt_prefix):

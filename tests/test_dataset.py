@@ -161,3 +161,31 @@ def test_write_json_atomic_leaves_nothing_on_failure(tmp_path):
         write_json_atomic(target, {"a": object()})
     assert json.loads(target.read_text()) == {"a": [0, 1, 2]}
     assert [p.name for p in target.parent.iterdir()] == ["x.json"]
+
+
+def test_spreadsheet_exports_are_read(tmp_path):
+    """Files saved by spreadsheets and Windows editors: a UTF-8 byte-order mark and CRLF
+    line endings in dataset.json, positions.csv, scans and sweeps read as the plain files."""
+    root = make_dataset(tmp_path / "ds")
+    for f in [root / "dataset.json", root / "positions.csv", *sorted((root / "scans").glob("*.csv"))]:
+        f.write_bytes(b"\xef\xbb\xbf" + f.read_bytes().replace(b"\n", b"\r\n"))
+    ds = load_dataset(root)
+    assert [p.psi_deg for p in ds.positions] == [0.0, 0.25, 0.5]
+    ang, rng = read_scan(ds.positions[0].scan, ds.lidar)
+    np.testing.assert_allclose(ang, [-1, -0.5, 0, 0.5, 1])
+    assert rng[0] == 1000.5 and np.isnan(rng[1]) and np.isnan(rng[2])
+    p = tmp_path / "s.csv.gz"
+    with gzip.open(p, "wb") as f:
+        f.write(b"\xef\xbb\xbfpsi_deg,angle_deg,range_mm\r\n1.0,-1,1500.5\r\n1.0,0,0\r\n")
+    df = read_sweep(p)
+    assert list(df["psi_deg"]) == [1.0, 1.0] and df["range_mm"].iloc[0] == 1500.5
+
+
+def test_ranges_in_metres_are_named(tmp_path):
+    """A scan exported in metres: every return falls below range_min_mm; the error says so."""
+    ds = load_dataset(make_dataset(tmp_path / "ds"))
+    p = tmp_path / "m.csv"
+    p.write_text("angle_deg,range_mm\n" + "".join(f"{a / 10:.1f},{1.2 + a / 100:.3f}\n" for a in range(-10, 11)))
+    with pytest.raises(DatasetError, match=r"every return is outside .*ranges must be in mm") as e:
+        read_scan(p, ds.lidar)
+    assert str(e.value).startswith(str(p))
