@@ -40,6 +40,16 @@ without them the covariance is far too optimistic. After a first robust fit
 and residuals beyond ``REJECT_SIGMAS`` are dropped (a bounded loss still
 pulls with constant force per outlier), twice.
 
+Encoder jitter (:func:`angle_jitter`): a turntable whose encoder reports each
+angle with a random error turns all of a position's observations together. With
+the rig held, each position's own angle step is estimated from its residuals;
+the jitter variance maximises the steps' marginal likelihood (random effects);
+when the data show a jitter (likelihood ratio above ``JITTER_LR``) every
+position's angle gets its posterior correction, the noise is re-estimated and
+the rig refitted. ``poses`` are then the function at the corrected angles, and
+their sigmas include each angle's remaining uncertainty. Without jitter nothing
+changes.
+
 The segment <-> board assignment of each position is the one the single-shot
 solution chose (``pose.info["pairs"]``: camera board ``k`` <-> scan segment
 ``pairs[k]``).
@@ -89,6 +99,7 @@ CLIP_SIGMAS = 4.0  # residuals beyond this many sigmas do not enter the group mo
 SIGNIFICANCE = 3.0  # a correlated-noise component enters when this many sigmas above zero
 REJECT_SIGMAS = 5.0  # residuals beyond this many (whitened) sigmas are dropped after a first fit
 CORNER_FLOOR_PX = 0.1  # chessboard corner accuracy assumed for the board planes' uncertainty
+JITTER_LR = 25.0  # encoder jitter is modelled when its likelihood ratio exceeds this (~5 sigma)
 MIN_POINTS_PER_BOARD = 8
 # central-difference steps: rotations / directions (rad), translations (mm)
 _STEPS = np.array([1e-6] * 2 + [1e-3] * 2 + [1e-6] * 3 + [1e-3] * 3 + ([1e-6] * 3 + [1e-3] * 3) * 2)
@@ -630,7 +641,10 @@ class JointModel:
     (2, same basis, mm), reference rotation vector (3, rad, applied on the left
     of ``R_ref``), reference centre (3, mm). ``noise`` holds the estimated noise
     scales, ``warnings`` the weak-setup warnings; ``info`` (not serialised) the
-    residuals and optimiser details.
+    residuals and optimiser details. ``jitter_deg`` is the estimated turntable
+    angle jitter (1-sigma; 0: none detected) and ``angle_corrections`` maps a
+    dataset position index to its angle correction and that correction's
+    1-sigma (deg): the turntable stood at ``psi + correction`` (:func:`angle_jitter`).
     """
 
     axis: Axis
@@ -641,6 +655,8 @@ class JointModel:
     noise: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
     info: dict = field(default_factory=dict, repr=False)
+    jitter_deg: float = 0.0
+    angle_corrections: dict = field(default_factory=dict)
 
     @property
     def rigid(self) -> RigidModel:
@@ -653,6 +669,33 @@ class JointModel:
     def pose(self, psi_deg: float | np.ndarray) -> Pose | list[Pose]:
         """LiDAR pose(s) at turntable angle(s) ``psi_deg`` (the rigid model)."""
         return self.rigid.pose(psi_deg)
+
+    def position_psi(self, index: int, psi_deg: float) -> float:
+        """The turntable angle of dataset position ``index``: the reported ``psi_deg`` plus
+        its estimated jitter correction, if any."""
+        return float(psi_deg) + self.angle_corrections.get(int(index), (0.0, 0.0))[0]
+
+    def position_sigma_columns(self, indices, psi_deg) -> dict[str, np.ndarray]:
+        """:meth:`sigma_columns` at dataset positions: at their corrected angles, with the
+        remaining uncertainty of each angle (its correction's 1-sigma, or ``jitter_deg``
+        without one) added in quadrature. An angle error turns the pose about the axis:
+        the centre moves by the angle times its distance from the axis, the z and x axes
+        tilt by the angle times the sine of their angle to the turntable axis."""
+        idx = [int(i) for i in indices]
+        psi = np.array([self.position_psi(i, p) for i, p in zip(idx, np.atleast_1d(psi_deg))])
+        cols = self.sigma_columns(psi)
+        e = np.radians([self.angle_corrections.get(i, (0.0, self.jitter_deg))[1] for i in idx])
+        if not np.any(e > 0):
+            return cols
+        k, a = self.axis.direction, self.axis.point
+        poses = self.pose(psi)
+        poses = poses if isinstance(poses, list) else [poses]
+        dist = np.array([np.linalg.norm(np.cross(p.T - a, k)) for p in poses])
+        cols["centre_mm"] = np.hypot(cols["centre_mm"], e * dist)
+        for name, col in (("z_axis_deg", 2), ("x_axis_deg", 0)):
+            sin = np.array([np.linalg.norm(np.cross(p.R[:, col], k)) for p in poses])
+            cols[name] = np.hypot(cols[name], np.degrees(e * sin))
+        return cols
 
     def _base(self) -> _Base:
         return _Base.make(self.axis.direction, self.axis.point, self.R_ref, self.T_ref,
@@ -696,16 +739,25 @@ class JointModel:
                                           "centre_x_mm", "centre_y_mm", "centre_z_mm"],
                 "unobservable": np.asarray(self.info.get("null", np.zeros((N_RIG, 0)))).T.tolist(),
                 "noise": {k: float(v) for k, v in self.noise.items()},
-                "warnings": list(self.warnings)}
+                "warnings": list(self.warnings),
+                **({"angle_jitter": {
+                    "sigma_deg": float(self.jitter_deg),
+                    "positions": [{"index": i, "correction_deg": c, "sigma_deg": e}
+                                  for i, (c, e) in sorted(self.angle_corrections.items())]}}
+                   if self.angle_corrections else {})}
 
     @staticmethod
     def from_dict(d: dict) -> JointModel:
         cov = np.asarray(d.get("covariance", np.full((N_RIG, N_RIG), np.nan)), dtype=float)
         null = np.asarray(d.get("unobservable", []), dtype=float).reshape(-1, N_RIG).T
+        jit = d.get("angle_jitter") or {}
         return JointModel(Axis.from_dict(d["axis"]), float(d["psi_ref_deg"]),
                           np.asarray(d["pose_ref"]["R"], dtype=float),
                           np.asarray(d["pose_ref"]["T_mm"], dtype=float), cov,
-                          dict(d.get("noise", {})), tuple(d.get("warnings", ())), {"null": null})
+                          dict(d.get("noise", {})), tuple(d.get("warnings", ())), {"null": null},
+                          float(jit.get("sigma_deg", 0.0)),
+                          {int(r["index"]): (float(r["correction_deg"]), float(r["sigma_deg"]))
+                           for r in jit.get("positions", [])})
 
 
 def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray
@@ -786,7 +838,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
                    loss: str = "soft_l1", psi_ref_deg: float | None = None,
                    f_scale: float = F_SCALE, solver: str = "lm",
                    correlated: bool = True,
-                   corner_floor_px: float = CORNER_FLOOR_PX) -> JointModel:
+                   corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True) -> JointModel:
     """Joint fit on prepared observations; ``starts`` are pose functions (axis + ``pose``).
 
     See :func:`fit_joint`. Every start is refined once with the start's noise
@@ -849,12 +901,28 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         prob.reject(_full(x))
         sol = solve(prob, x)
         x = sol.x
+    # encoder jitter (beyond the paper): per-position angle corrections, then the rig again
+    t_reported = prob.t.copy()
+    jit = angle_jitter(prob, x, t_reported, loss, f_scale) if jitter else None
+    if jit is not None and jit["lr"] > JITTER_LR:
+        prob.t = t_reported + np.radians(jit["correction_deg"])
+        prob.set_stripe_scale(_full(x))
+        estimate_noise(prob, x, groups=True)
+        prob.reject(_full(x))
+        sol = solve(prob, x)
+        x = sol.x
+        jit = angle_jitter(prob, x, t_reported, loss, f_scale)
+    if jit is not None and jit["lr"] <= JITTER_LR:
+        jit["correction_deg"] = np.zeros(data.n_positions)
+        jit["correction_sigma_deg"] = np.zeros(data.n_positions)
+    t_final = t_reported if jit is None else t_reported + np.radians(jit["correction_deg"])
     # re-base at the solution so the covariance is about it (x = 0)
     k, a, R_ref, T_ref = _rig(x, prob.base)
     bR, bT = _boards(_full(x), prob.base)
     base = _Base.make(k, a, R_ref, T_ref, bR, bT)
     old = prob
     prob = _Problem(data, base, psi_ref)
+    prob.t = t_final
     prob.scale_px, prob.scan, prob.stripe = old.scale_px, old.scan, old.stripe
     prob.sigma_corner = old.sigma_corner
     prob.corner_floor_px = float(corner_floor_px)
@@ -869,6 +937,10 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             noise[f"{name}{b}_tilt_{unit_}_per_{unit_}"] = float(np.sqrt(grp.var1[b]))
     if data.corners_px is not None:
         noise["corner_px"] = float(prob.sigma_corner)
+    corrections = {} if jit is None or jit["lr"] <= JITTER_LR else {
+        int(i): (float(c), float(e)) for i, c, e in
+        zip(data.indices, jit["correction_deg"], jit["correction_sigma_deg"])}
+    jitter_deg = 0.0 if not corrections else float(jit["sigma_deg"])
     model = JointModel(axis, psi_ref, base.R, base.T, cov, noise)
     warn = joint_warnings(data, model, null)
     info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
@@ -877,8 +949,99 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             "board_planes": tuple(Plane.from_normal_point(bR[j][:, 2], bT[j]) for j in range(2)),
             "n_scan": len(rs), "n_stripe": len(rp), "stripes": len(data.stripe_px) > 0,
             "rejected_scan": int((prob.scan.w == 0).sum()),
-            "rejected_stripe": int((prob.stripe.w == 0).sum())}
-    return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info)
+            "rejected_stripe": int((prob.stripe.w == 0).sum()), "jitter": jit}
+    return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
+                      jitter_deg, corrections)
+
+
+def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised least-squares step of each position's own turntable angle, rig held at ``x``.
+
+    The residuals of position ``i`` depend on its angle ``t_i`` only: one central
+    difference of all angles at once gives every ``dr/dt_i``. With robust weights
+    ``w``: ``H_i = sum w J^2``, ``g_i = sum w J r``; step ``-g_i / H_i`` (rad) and its
+    variance ``s^2 / H_i`` (``s^2 >= 1`` the weighted residual variance).
+    """
+    d = prob.data
+    t0 = prob.t
+    h = 1e-5
+    r0 = prob.normalised(x, False)
+    prob.t = t0 + h
+    rp = prob.normalised(x, False)
+    prob.t = t0 - h
+    rm = prob.normalised(x, False)
+    prob.t = t0
+    J = (rp - rm) / (2 * h)
+    pos = np.concatenate([d.scan_pos, d.stripe_pos])
+    w = _irls_weights(r0 / f_scale, loss)
+    n = d.n_positions
+    s2 = max(float(np.sum(w * r0 * r0)) / max(len(r0) - N_RIG - n, 1), 1.0)
+    H = np.bincount(pos, w * J * J, minlength=n)
+    g = np.bincount(pos, w * J * r0, minlength=n)
+    ok = H > 1e-300
+    step = np.where(ok, -g / np.where(ok, H, 1.0), 0.0)
+    return step, np.where(ok, s2 / np.where(ok, H, 1.0), np.inf)
+
+
+def angle_jitter(prob: _Problem, x: np.ndarray, t_reported: np.ndarray, loss: str,
+                 f_scale: float) -> dict:
+    """Turntable angle error of every position (encoder jitter) as a random effect (beyond the paper).
+
+    The encoder reports ``psi_i``; the turntable stood at ``psi_i + delta_i`` with
+    ``delta_i ~ N(0, tau^2)``. A jitter moves all of a position's stripe centres and
+    scan points coherently, which the correlated-noise model otherwise takes for
+    stripe offsets (and then trusts the stripes less). With the rig held:
+
+    1. each position's angle step ``d_i`` (:func:`_angle_steps`);
+    2. the noise components re-estimated with those steps applied (the offsets
+       are then the stripes' own), and the steps refined, with variances ``v_i``;
+    3. ``tau^2`` maximises the marginal likelihood ``d_i ~ N(0, tau^2 + v_i)``;
+       posterior ``delta_i = tau^2 / (tau^2 + v_i) d_i``, variance
+       ``tau^2 v_i / (tau^2 + v_i)``. ``lr`` is the likelihood-ratio statistic of
+       ``tau > 0`` against no jitter.
+
+    ``prob.t`` may already hold corrections (``t_reported`` are the encoder's
+    angles); ``prob`` is left as it was. Angles in the returned dict are degrees.
+    """
+    from scipy.optimize import minimize_scalar
+
+    d = prob.data
+    t_in = prob.t.copy()
+    saved = [(g.sigma, g.var0, g.var1, g.var0_g, g.var1_g) for g in (prob.scan, prob.stripe)]
+    mask = [g.w.copy() for g in (prob.scan, prob.stripe)]
+    try:
+        d1, _ = _angle_steps(prob, x, loss, f_scale)
+        prob.t = t_in + d1
+        rs, rp, _ = prob.blocks(x, corners=False)
+        length = max(float(np.abs(d.board_T).max()), 1.0)
+        prob.scan.estimate(rs, 1e-9 * length)
+        prob.stripe.estimate(rp, 1e-6)
+        d2, v = _angle_steps(prob, x, loss, f_scale)
+        dhat = (t_in - t_reported) + d1 + d2
+    finally:
+        prob.t = t_in
+        for g, sv, m in zip((prob.scan, prob.stripe), saved, mask):
+            g.set(*sv)
+            g.set_mask(m)
+    ok = np.isfinite(v)
+    if ok.sum() < 3:
+        z = np.zeros(len(dhat))
+        return {"sigma_deg": 0.0, "lr": 0.0, "correction_deg": z, "correction_sigma_deg": z}
+
+    def nll(log_tau2: float) -> float:
+        tot = np.exp(log_tau2) + v[ok]
+        return 0.5 * float(np.sum(np.log(tot) + dhat[ok] ** 2 / tot))
+
+    lo = float(np.log(max(np.median(v[ok]) * 1e-6, 1e-30)))
+    hi = float(np.log(max(np.max(dhat[ok] ** 2) * 10.0, np.exp(lo) * 10.0)))
+    opt = minimize_scalar(nll, bounds=(lo, hi), method="bounded")
+    tau2 = float(np.exp(opt.x))
+    lr = max(2.0 * (0.5 * float(np.sum(np.log(v[ok]) + dhat[ok] ** 2 / v[ok])) - float(opt.fun)), 0.0)
+    shrink = np.where(ok, tau2 / (tau2 + np.where(ok, v, 1.0)), 0.0)
+    return {"sigma_deg": float(np.degrees(np.sqrt(tau2))), "lr": float(lr),
+            "correction_deg": np.degrees(shrink * dhat),
+            "correction_sigma_deg": np.degrees(np.sqrt(np.where(ok, shrink * v, tau2)))}
 
 
 @dataclass
@@ -1061,7 +1224,7 @@ def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None =
 
 def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripes: bool = True,
               correlated: bool = True, board_poses: str = "pnp", psi_ref_deg: float | None = None,
-              corner_floor_px: float = CORNER_FLOOR_PX) -> JointModel:
+              corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True) -> JointModel:
     """Joint maximum-likelihood fit of the rig to all stripe pixels and scan points (beyond the paper).
 
     Parameters
@@ -1092,6 +1255,9 @@ def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripe
         Reference angle of ``pose_ref`` (default: the mean psi).
     corner_floor_px : float
         Least per-coordinate corner error assumed for the planes' uncertainty.
+    jitter : bool
+        Estimate the turntable's angle jitter and correct each position's angle
+        when the data show one (:func:`angle_jitter`).
 
     Returns
     -------
@@ -1104,4 +1270,4 @@ def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripe
         data = data.without_stripes()
     return fit_joint_data(data, [result.rigid_model, result.paper_model], fit_planes=fit_planes,
                           loss=loss, psi_ref_deg=psi_ref_deg, correlated=correlated,
-                          corner_floor_px=corner_floor_px)
+                          corner_floor_px=corner_floor_px, jitter=jitter)

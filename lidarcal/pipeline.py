@@ -109,8 +109,11 @@ class CalibrationResult:
         return {p.index: p.pose for p in self.positions}
 
     def fitted(self, model=None) -> dict[int, Pose]:
+        """The pose function at every position (at its jitter-corrected angle when the
+        function carries corrections, as the joint fit does)."""
         m = self.model if model is None else model
-        return {p.index: m.pose(p.psi_deg) for p in self.positions}
+        at = getattr(m, "position_psi", lambda i, psi: psi)
+        return {p.index: m.pose(at(p.index, p.psi_deg)) for p in self.positions}
 
     def summary(self) -> str:
         ax = self.model.axis
@@ -363,8 +366,14 @@ def dataset_hash(ds: Dataset) -> str:
     return h.hexdigest()
 
 
-def _pose_rows(poses: dict[int, Pose], psi: dict[int, float]) -> list[dict]:
-    return [{"index": i, "psi_deg": psi[i], **p.to_dict()} for i, p in sorted(poses.items())]
+def _pose_rows(poses: dict[int, Pose], psi: dict[int, float], model=None) -> list[dict]:
+    """Rows of ``poses``; with a model that corrects the encoder's angles, each row also
+    gives ``psi_corrected_deg``, the angle the function was evaluated at."""
+    at = getattr(model, "position_psi", None)
+    if at is None or not getattr(model, "angle_corrections", None):
+        return [{"index": i, "psi_deg": psi[i], **p.to_dict()} for i, p in sorted(poses.items())]
+    return [{"index": i, "psi_deg": psi[i], "psi_corrected_deg": at(i, psi[i]), **p.to_dict()}
+            for i, p in sorted(poses.items())]
 
 
 def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict:
@@ -385,14 +394,14 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
         "axis": {"point_mm": res.model.axis.point.tolist(),
                  "direction": res.model.axis.direction.tolist()},
         "samples": samples,
-        "poses": _pose_rows(res.fitted(), psi),
+        "poses": _pose_rows(res.fitted(), psi, res.model),
         "model": res.model.to_dict(),
         "method": res.method,
     }
     for name, m in res.models.items():
         if name != res.method:
             out[f"model_{name}"] = m.to_dict()
-            out[f"poses_{name}"] = _pose_rows(res.fitted(m), psi)
+            out[f"poses_{name}"] = _pose_rows(res.fitted(m), psi, m)
     if res.joint_model is not None:
         out["sigma"] = sigma_block(res.joint_model, res.positions)
     out.update({
@@ -418,14 +427,17 @@ def sigma_block(model, positions: list[PositionResult]) -> dict:
     Per position the centre (mm, RMS length of the error vector) and the z and x axes
     (deg); for the turntable axis its direction (deg) and its position near the LiDAR
     (mm). ``null`` marks a quantity the data do not determine. The full covariance of
-    the 10 rig parameters is ``model.covariance``.
+    the 10 rig parameters is ``model.covariance``. Positions are at their jitter-corrected
+    angles and include the remaining angle uncertainty; ``angle_jitter_deg`` is the
+    estimated encoder jitter (0: none detected).
     """
     psi = np.array([p.psi_deg for p in positions], dtype=float)
-    cols = model.sigma_columns(psi)
+    cols = model.position_sigma_columns([p.index for p in positions], psi)
     rows = [{"index": p.index, "psi_deg": p.psi_deg,
              **{q: _finite_or_none(cols[q][j]) for q in ("centre_mm", "z_axis_deg", "x_axis_deg")}}
             for j, p in enumerate(positions)]
     return {"level": "1-sigma", "method": "joint",
+            "angle_jitter_deg": float(model.jitter_deg),
             "axis_direction_deg": _finite_or_none(cols["axis_direction_deg"][0]),
             "axis_point_mm": _finite_or_none(cols["axis_point_mm"][0]),
             "noise": {k: float(v) for k, v in model.noise.items()},

@@ -247,3 +247,46 @@ def test_end_to_end_rendered(tmp_path_factory):
     k = np.array(truth["axis"]["direction"])
     assert axis_direction_error_deg(m.axis.direction, k) <= 2 * sig["axis_direction_deg"].iloc[0]
     assert any("only 4 positions" in w for w in m.warnings)
+
+
+JITTERY = StudySetting(rig="harsh", n_positions=30)  # the harsh preset: encoder jitter 0.003 deg
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_encoder_jitter_is_estimated_and_corrected(seed):
+    """Encoder jitter (0.003 deg, the harsh preset): the joint fit finds its level, its
+    per-position corrections follow the true angle errors, the z axis (which a jitter
+    tilts one for one) gets better, and the reported sigma covers the true errors."""
+    sim = simulate_rig(seed, JITTERY)
+    res = sim.result
+    plain = fit_joint(res, jitter=False)
+    m = fit_joint(res)
+    assert plain.jitter_deg == 0.0 and not plain.angle_corrections
+    assert 0.0015 < m.jitter_deg < 0.006
+    idx = [p.index for p in res.positions]
+    truth_err = np.array([sim.truth.psi_true_deg[i] - sim.truth.psi_deg[i] for i in idx])
+    corr = np.array([m.angle_corrections[i][0] for i in idx])
+    assert np.corrcoef(corr, truth_err - truth_err.mean())[0, 1] > 0.8
+
+    def z_err(model):
+        return np.mean([pose_error(model.pose(model.position_psi(p.index, p.psi_deg)),
+                                   sim.true_poses[p.index])["z_axis_deg"] for p in res.positions])
+
+    assert z_err(m) < 0.8 * z_err(plain)
+    sig = m.position_sigma_columns(idx, res.psi_deg)
+    inside = [pose_error(m.pose(m.position_psi(p.index, p.psi_deg)), sim.true_poses[p.index])[q]
+              <= 2 * sig[q][j] for j, p in enumerate(res.positions)
+              for q in ("centre_mm", "z_axis_deg", "x_axis_deg")]
+    assert np.mean(inside) >= 0.85
+    m2 = model_from_dict(json.loads(json.dumps(m.to_dict())))
+    assert m2.jitter_deg == m.jitter_deg and m2.angle_corrections == m.angle_corrections
+
+
+def test_no_jitter_no_corrections(noisy_rigs):
+    """Exact encoder angles: no jitter is detected, poses are the function at the reported angles."""
+    for sim in noisy_rigs:
+        m = fit_joint(sim.result)
+        assert m.jitter_deg == 0.0 and not m.angle_corrections
+        assert "angle_jitter" not in m.to_dict()
+        p = sim.result.positions[0]
+        assert m.position_psi(p.index, p.psi_deg) == p.psi_deg
