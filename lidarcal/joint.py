@@ -678,13 +678,17 @@ class JointModel:
     def position_sigma_columns(self, indices, psi_deg) -> dict[str, np.ndarray]:
         """:meth:`sigma_columns` at dataset positions: at their corrected angles, with the
         remaining uncertainty of each angle (its correction's 1-sigma, or ``jitter_deg``
-        without one) added in quadrature. An angle error turns the pose about the axis:
-        the centre moves by the angle times its distance from the axis, the z and x axes
-        tilt by the angle times the sine of their angle to the turntable axis."""
+        without one) in place of the jitter."""
         idx = [int(i) for i in indices]
         psi = np.array([self.position_psi(i, p) for i, p in zip(idx, np.atleast_1d(psi_deg))])
-        cols = self.sigma_columns(psi)
-        e = np.radians([self.angle_corrections.get(i, (0.0, self.jitter_deg))[1] for i in idx])
+        e = np.array([self.angle_corrections.get(i, (0.0, self.jitter_deg))[1] for i in idx])
+        return self._with_angle_sigma(self.sigma_columns(psi, jitter=False), psi, e)
+
+    def _with_angle_sigma(self, cols: dict, psi: np.ndarray, e_deg: np.ndarray) -> dict:
+        """Add an angle uncertainty ``e_deg`` (per angle) in quadrature: it turns the pose
+        about the axis, moving the centre by the angle times its distance from the axis and
+        tilting the z and x axes by the angle times the sine of their angle to the axis."""
+        e = np.radians(np.broadcast_to(np.asarray(e_deg, float), psi.shape))
         if not np.any(e > 0):
             return cols
         k, a = self.axis.direction, self.axis.point
@@ -720,12 +724,15 @@ class JointModel:
             return {k: float(v[0]) for k, v in cols.items() if k != "psi_deg"}
         return pd.DataFrame(cols)
 
-    def sigma_columns(self, psi_deg: float | np.ndarray) -> dict[str, np.ndarray]:
-        """:meth:`sigma` as a dict of columns (``psi_deg`` first), numpy arrays."""
+    def sigma_columns(self, psi_deg: float | np.ndarray, jitter: bool = True) -> dict[str, np.ndarray]:
+        """:meth:`sigma` as a dict of columns (``psi_deg`` first), numpy arrays. With
+        ``jitter`` the encoder's estimated jitter (``jitter_deg``) is included: the pose at
+        a *reported* angle carries it."""
         psi = np.atleast_1d(np.asarray(psi_deg, dtype=float))
         out = _pose_sigmas(self._base(), self.cov, np.radians(psi - self.psi_ref_deg),
                            self.info.get("null", np.zeros((N_RIG, 0))))
-        return {"psi_deg": psi, **out}
+        cols = {"psi_deg": psi, **out}
+        return self._with_angle_sigma(cols, psi, self.jitter_deg) if jitter else cols
 
     def to_dict(self) -> dict:
         from .turntable import RIGID_FORMULA

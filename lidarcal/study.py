@@ -254,8 +254,13 @@ def evaluate_rig(sim: SimulatedRig, methods: Sequence[str] = METHODS) -> pd.Data
         t0 = time.perf_counter()
         m = _fit(method, res)
         dt = time.perf_counter() - t0
-        est = [p.pose for p in res.positions] if m is None else m.pose(psi)
-        sig = m.sigma(psi) if hasattr(m, "sigma") else None
+        if m is None:
+            est = [p.pose for p in res.positions]
+        elif hasattr(m, "position_psi"):  # the joint fit: at jitter-corrected angles
+            est = [m.pose(m.position_psi(i, a)) for i, a in zip(idx, psi)]
+        else:
+            est = m.pose(psi)
+        sig = pd.DataFrame(m.position_sigma_columns(idx, psi)) if hasattr(m, "sigma") else None
         common = {"method": method, "fit_s": dt}
         if m is not None:
             common["axis_direction_deg"] = axis_direction_error_deg(m.axis.direction,

@@ -280,6 +280,10 @@ def test_encoder_jitter_is_estimated_and_corrected(seed):
     assert np.mean(inside) >= 0.85
     m2 = model_from_dict(json.loads(json.dumps(m.to_dict())))
     assert m2.jitter_deg == m.jitter_deg and m2.angle_corrections == m.angle_corrections
+    # a pose at a *reported* angle (a future scan) carries the whole jitter
+    with_j, without = m.sigma_columns(res.psi_deg), m.sigma_columns(res.psi_deg, jitter=False)
+    assert np.all(with_j["z_axis_deg"] > without["z_axis_deg"])
+    assert np.all(with_j["z_axis_deg"] >= 0.9 * m.jitter_deg)
 
 
 def test_no_jitter_no_corrections(noisy_rigs):
