@@ -153,6 +153,9 @@ def uncertainty_summary(cal: dict, truth: dict | None) -> str:
     out = (f"centre {fnum(mean['centre_mm'], 3)} mm, z axis {fnum(mean['z_axis_deg'], 4)} deg, "
            f"x axis {fnum(mean['x_axis_deg'], 4)} deg, axis direction "
            f"{fnum(sig.get('axis_direction_deg') or np.inf, 4)} deg")
+    if sig.get("angle_jitter_deg"):
+        out += (f"; turntable encoder jitter {fnum(float(sig['angle_jitter_deg']), 4)} deg "
+                "(each position's angle corrected)")
     if truth is not None and truth.get("poses"):
         tp, est = _poses(truth["poses"]), _poses(cal.get("poses"))
         inside = [pose_error(est[i], tp[i])[q] <= 2 * val(r, q)

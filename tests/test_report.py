@@ -287,5 +287,7 @@ def test_uncertainty_summary_counts_coverage():
     text = uncertainty_summary(cal, truth)
     assert text.startswith("centre 0.100 mm")
     # centre inside at 0 only; z inside at both (no rotation error); x sigma unknown -> inside
-    assert "within 2 sigma for 83 %" in text
+    assert "within 2 sigma for 83 %" in text and "jitter" not in text
     assert uncertainty_summary({"poses": []}, truth) == ""
+    cal["sigma"]["angle_jitter_deg"] = 0.0031
+    assert "encoder jitter 0.0031 deg" in uncertainty_summary(cal, truth)
