@@ -236,8 +236,8 @@ def _fit(method: str, result: CalibrationResult):
         return fit_joint(result)
     if method == "joint_planes":
         return fit_joint(result, fit_planes=True)
-    if method == "scan_only":
-        return fit_joint(result, stripes=False)
+    if method == "scan_only":  # the classic point-on-plane calibration: no jitter model
+        return fit_joint(result, stripes=False, jitter=False)
     raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
 
 
