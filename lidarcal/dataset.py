@@ -351,6 +351,8 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
     (``colour="max"``, for the dark stripe images: a red or green laser keeps its
     full signal instead of 30 % or 59 % of it).
     """
+    if colour not in ("gray", "max"):
+        raise ValueError(f"colour must be 'gray' or 'max', got {colour!r}")
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "missing image; copy it again or drop this position")
@@ -449,6 +451,7 @@ def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
     no_return = rng == 0
     if lidar is not None:
         outside = (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
+        # a whole scan outside the limits is a unit problem, not a scene (10: not a stray beam)
         if np.all(outside | no_return) and np.count_nonzero(~no_return) >= 10:
             raise DatasetError(path, f"every return is outside range_min_mm..range_max_mm "
                                      f"({lidar.range_min_mm:g}..{lidar.range_max_mm:g}; median range "

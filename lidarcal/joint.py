@@ -441,6 +441,17 @@ class _Problem:
         self.sigma_corner = 1.0
         self.corner_floor_px = 0.0
 
+    def estimate_noise(self, x: np.ndarray, correlated: bool) -> None:
+        """Noise scales of every residual kind from the residuals at ``x`` (:meth:`_Groups.estimate`);
+        without ``correlated`` the per-segment / per-stripe components are zero."""
+        rs, rp, rc = self.blocks(x)
+        self.scan.estimate(rs, 1e-9 * max(float(np.abs(self.data.board_T).max()), 1.0))
+        self.stripe.estimate(rp, 1e-6)
+        if not correlated:
+            self.scan.set(self.scan.sigma, [0, 0], [0, 0])
+            self.stripe.set(self.stripe.sigma, [0, 0], [0, 0])
+        self.sigma_corner = _robust_sigma(rc, 1e-6)
+
     def reject(self, x: np.ndarray) -> None:
         """Drop residuals beyond ``REJECT_SIGMAS`` (whitened) from the fit: a bounded loss
         still lets gross outliers pull with constant force; cutting them restores the
@@ -864,16 +875,6 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     bases = _start_bases(starts, data, psi_ref)
     n_par = N_RIG + (2 * N_BOARD if fit_planes else 0)
     x0 = np.zeros(n_par)
-    length = max(float(np.abs(data.board_T).max()), 1.0)
-
-    def estimate_noise(prob: _Problem, x: np.ndarray, groups: bool) -> None:
-        rs, rp, rc = prob.blocks(_full(x))
-        prob.scan.estimate(rs, 1e-9 * length)
-        prob.stripe.estimate(rp, 1e-6)
-        if not (groups and correlated):
-            prob.scan.set(prob.scan.sigma, [0, 0], [0, 0])
-            prob.stripe.set(prob.stripe.sigma, [0, 0], [0, 0])
-        prob.sigma_corner = _robust_sigma(rc, 1e-6)
 
     def _full(x):
         return x if len(x) > N_RIG else np.concatenate([x, np.zeros(2 * N_BOARD)])
@@ -890,7 +891,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     for base in bases:
         prob = _Problem(data, base, psi_ref)
         prob.set_stripe_scale(_full(x0))
-        estimate_noise(prob, x0, groups=False)
+        prob.estimate_noise(x0, correlated=False)
         sols.append((prob, solve(prob, x0)))
     # costs are comparable only with the same noise model: rescore with the first start's
     scores = []
@@ -902,27 +903,27 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     best = int(np.argmin(scores))
     prob, sol = sols[best]
     x = sol.x
-    for _ in range(2):
+
+    def refine(prob: _Problem, x: np.ndarray):
+        """Noise re-estimated at ``x``, outliers dropped, solved again."""
         prob.set_stripe_scale(_full(x))
-        estimate_noise(prob, x, groups=True)
+        prob.estimate_noise(x, correlated)
         prob.reject(_full(x))
-        sol = solve(prob, x)
+        return solve(prob, x)
+
+    for _ in range(2):
+        sol = refine(prob, x)
         x = sol.x
     # encoder jitter (beyond the paper): per-position angle corrections, then the rig again
     t_reported = prob.t.copy()
-    jit = angle_jitter(prob, x, t_reported, loss, f_scale) if jitter else None
+    jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated) if jitter else None
     if jit is not None and jit["lr"] > JITTER_LR:
         prob.t = t_reported + np.radians(jit["correction_deg"])
-        prob.set_stripe_scale(_full(x))
-        estimate_noise(prob, x, groups=True)
-        prob.reject(_full(x))
-        sol = solve(prob, x)
+        sol = refine(prob, x)
         x = sol.x
-        jit = angle_jitter(prob, x, t_reported, loss, f_scale)
-    if jit is not None and jit["lr"] <= JITTER_LR:
-        jit["correction_deg"] = np.zeros(data.n_positions)
-        jit["correction_sigma_deg"] = np.zeros(data.n_positions)
-    t_final = t_reported if jit is None else t_reported + np.radians(jit["correction_deg"])
+        jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated)
+    applied = jit is not None and jit["lr"] > JITTER_LR
+    t_final = t_reported + np.radians(jit["correction_deg"]) if applied else t_reported
     # re-base at the solution so the covariance is about it (x = 0)
     k, a, R_ref, T_ref = _rig(x, prob.base)
     bR, bT = _boards(_full(x), prob.base)
@@ -944,10 +945,9 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             noise[f"{name}{b}_tilt_{unit_}_per_{unit_}"] = float(np.sqrt(grp.var1[b]))
     if data.corners_px is not None:
         noise["corner_px"] = float(prob.sigma_corner)
-    corrections = {} if jit is None or jit["lr"] <= JITTER_LR else {
-        int(i): (float(c), float(e)) for i, c, e in
-        zip(data.indices, jit["correction_deg"], jit["correction_sigma_deg"])}
-    jitter_deg = 0.0 if not corrections else float(jit["sigma_deg"])
+    corrections = {int(i): (float(c), float(e)) for i, c, e in
+                   zip(data.indices, jit["correction_deg"], jit["correction_sigma_deg"])} if applied else {}
+    jitter_deg = float(jit["sigma_deg"]) if applied else 0.0
     model = JointModel(axis, psi_ref, base.R, base.T, cov, noise)
     warn = joint_warnings(data, model, null)
     info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
@@ -992,7 +992,7 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
 
 
 def angle_jitter(prob: _Problem, x: np.ndarray, t_reported: np.ndarray, loss: str,
-                 f_scale: float) -> dict:
+                 f_scale: float, correlated: bool = True) -> dict:
     """Turntable angle error of every position (encoder jitter) as a random effect (beyond the paper).
 
     The encoder reports ``psi_i``; the turntable stood at ``psi_i + delta_i`` with
@@ -1009,28 +1009,20 @@ def angle_jitter(prob: _Problem, x: np.ndarray, t_reported: np.ndarray, loss: st
        ``tau > 0`` against no jitter.
 
     ``prob.t`` may already hold corrections (``t_reported`` are the encoder's
-    angles); ``prob`` is left as it was. Angles in the returned dict are degrees.
+    angles); ``prob`` is not changed (step 2 works on a copy). Angles in the
+    returned dict are degrees.
     """
+    import copy
+
     from scipy.optimize import minimize_scalar
 
-    d = prob.data
-    t_in = prob.t.copy()
-    saved = [(g.sigma, g.var0, g.var1, g.var0_g, g.var1_g) for g in (prob.scan, prob.stripe)]
-    mask = [g.w.copy() for g in (prob.scan, prob.stripe)]
-    try:
-        d1, _ = _angle_steps(prob, x, loss, f_scale)
-        prob.t = t_in + d1
-        rs, rp, _ = prob.blocks(x, corners=False)
-        length = max(float(np.abs(d.board_T).max()), 1.0)
-        prob.scan.estimate(rs, 1e-9 * length)
-        prob.stripe.estimate(rp, 1e-6)
-        d2, v = _angle_steps(prob, x, loss, f_scale)
-        dhat = (t_in - t_reported) + d1 + d2
-    finally:
-        prob.t = t_in
-        for g, sv, m in zip((prob.scan, prob.stripe), saved, mask):
-            g.set(*sv)
-            g.set_mask(m)
+    d1, _ = _angle_steps(prob, x, loss, f_scale)
+    work = copy.copy(prob)
+    work.scan, work.stripe = copy.deepcopy(prob.scan), copy.deepcopy(prob.stripe)
+    work.t = prob.t + d1
+    work.estimate_noise(x, correlated)
+    d2, v = _angle_steps(work, x, loss, f_scale)
+    dhat = (prob.t - t_reported) + d1 + d2
     ok = np.isfinite(v)
     if ok.sum() < 3:
         z = np.zeros(len(dhat))

@@ -369,11 +369,9 @@ def dataset_hash(ds: Dataset) -> str:
 def _pose_rows(poses: dict[int, Pose], psi: dict[int, float], model=None) -> list[dict]:
     """Rows of ``poses``; with a model that corrects the encoder's angles, each row also
     gives ``psi_corrected_deg``, the angle the function was evaluated at."""
-    at = getattr(model, "position_psi", None)
-    if at is None or not getattr(model, "angle_corrections", None):
-        return [{"index": i, "psi_deg": psi[i], **p.to_dict()} for i, p in sorted(poses.items())]
-    return [{"index": i, "psi_deg": psi[i], "psi_corrected_deg": at(i, psi[i]), **p.to_dict()}
-            for i, p in sorted(poses.items())]
+    at = model.position_psi if getattr(model, "angle_corrections", None) else None
+    return [{"index": i, "psi_deg": psi[i], **({"psi_corrected_deg": at(i, psi[i])} if at else {}),
+             **p.to_dict()} for i, p in sorted(poses.items())]
 
 
 def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict:

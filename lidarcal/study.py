@@ -74,7 +74,7 @@ from .camera import project_points
 from .dataset import BoardSpec, CameraModel
 from .evaluate import axis_direction_error_deg, pose_error
 from .geometry import Plane, unit
-from .joint import fit_joint
+from .joint import JointModel, fit_joint
 from .pipeline import CalibrationResult, PositionResult
 from .pose import single_shot_pose
 from .scan import fit_v_lines, scan_points, split_v
@@ -254,13 +254,14 @@ def evaluate_rig(sim: SimulatedRig, methods: Sequence[str] = METHODS) -> pd.Data
         t0 = time.perf_counter()
         m = _fit(method, res)
         dt = time.perf_counter() - t0
+        joint = isinstance(m, JointModel)
         if m is None:
             est = [p.pose for p in res.positions]
-        elif hasattr(m, "position_psi"):  # the joint fit: at jitter-corrected angles
+        elif joint:  # at its jitter-corrected angles
             est = [m.pose(m.position_psi(i, a)) for i, a in zip(idx, psi)]
         else:
             est = m.pose(psi)
-        sig = pd.DataFrame(m.position_sigma_columns(idx, psi)) if hasattr(m, "sigma") else None
+        sig = pd.DataFrame(m.position_sigma_columns(idx, psi)) if joint else None
         common = {"method": method, "fit_s": dt}
         if m is not None:
             common["axis_direction_deg"] = axis_direction_error_deg(m.axis.direction,

@@ -139,6 +139,8 @@ def test_bad_images(tmp_path):
     assert read_image(ok).shape == (10, 20)
     with pytest.raises(DatasetError, match="image is 20x10, expected 64x48"):
         read_image(ok, (64, 48))
+    with pytest.raises(ValueError, match="colour must be"):
+        read_image(ok, colour="red")
 
 
 def test_sweep_reader(tmp_path):

@@ -262,17 +262,18 @@ def test_encoder_jitter_is_estimated_and_corrected(seed):
     plain = fit_joint(res, jitter=False)
     m = fit_joint(res)
     assert plain.jitter_deg == 0.0 and not plain.angle_corrections
-    assert 0.0015 < m.jitter_deg < 0.006
     idx = [p.index for p in res.positions]
     truth_err = np.array([sim.truth.psi_true_deg[i] - sim.truth.psi_deg[i] for i in idx])
+    # measured on seeds 31-35: level within 3-13 % of the sample jitter, correlation >= 0.97
+    assert abs(m.jitter_deg - truth_err.std()) < 0.25 * truth_err.std()
     corr = np.array([m.angle_corrections[i][0] for i in idx])
-    assert np.corrcoef(corr, truth_err - truth_err.mean())[0, 1] > 0.8
+    assert np.corrcoef(corr, truth_err - truth_err.mean())[0, 1] > 0.95
 
     def z_err(model):
         return np.mean([pose_error(model.pose(model.position_psi(p.index, p.psi_deg)),
                                    sim.true_poses[p.index])["z_axis_deg"] for p in res.positions])
 
-    assert z_err(m) < 0.8 * z_err(plain)
+    assert z_err(m) < 0.7 * z_err(plain)  # measured 0.2-0.56 on seeds 31-35
     sig = m.position_sigma_columns(idx, res.psi_deg)
     inside = [pose_error(m.pose(m.position_psi(p.index, p.psi_deg)), sim.true_poses[p.index])[q]
               <= 2 * sig[q][j] for j, p in enumerate(res.positions)
