@@ -98,7 +98,11 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
     res = calibrate_intrinsics(paths, BoardSpec(a.pattern, a.square_mm))
     cam = res.camera
     K, d = cam.K, cam.dist
-    print(f"views used {len(res.files)} of {len(paths)}; image {cam.image_size[0]}x{cam.image_size[1]}")
+    print(f"views used {len(res.files_used)} of {len(paths)}; image "
+          f"{cam.image_size[0]}x{cam.image_size[1]}")
+    for f in res.files_rejected:
+        print(f"warning: {f}: the {a.pattern[0]}x{a.pattern[1]} chessboard was not found; "
+              "view not used", file=sys.stderr)
     print(f"fx {K[0, 0]:.3f}  fy {K[1, 1]:.3f}  cx {K[0, 2]:.3f}  cy {K[1, 2]:.3f}")
     print("dist k1 k2 p1 p2 k3: " + " ".join(f"{v:.6f}" for v in d))
     print(f"RMS reprojection error {cam.rms_px:.4f} px")
