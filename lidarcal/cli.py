@@ -53,8 +53,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "rigid rotation fitted to the single-shot poses) or paper (the paper's "
                         "chain, eqs. 15-27); all are stored")
     s.add_argument("--skip", type=int, nargs="*", default=[], help="position indices to drop")
+    s.add_argument("--strict", action="store_true",
+                   help="stop (exit 2) at the first position that cannot be solved; by default "
+                        "it is skipped with a warning naming its file while >= 3 positions remain")
     s.add_argument("--skip-failed", action="store_true",
-                   help="skip positions that cannot be solved (warning) while >= 3 remain")
+                   help="no effect, kept so old commands still run: skipping failed positions "
+                        "is the default (see --strict)")
     s.add_argument("--no-progress", action="store_true")
 
     s = sub.add_parser("pose", help="evaluate a calibration's pose function at turntable angles")
@@ -117,13 +121,14 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
 
     ds = load_dataset(a.dataset)
     skip = set(a.skip)
-    # decode the stripe images in a background thread while the heavier modules import
-    images = ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size)
-    from .pipeline import calibrate, write_calibration
+    # decode the stripe images in a background thread while the heavier modules import;
+    # leaving the block (result or error) stops and joins it before anything is printed
+    with ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size) as images:
+        from .pipeline import calibrate, write_calibration
 
-    res = calibrate(ds, skip=a.skip, skip_failed=a.skip_failed,
-                    progress=not a.no_progress and sys.stderr.isatty(), method=a.method,
-                    images=images)
+        res = calibrate(ds, skip=a.skip, strict=a.strict,
+                        progress=not a.no_progress and sys.stderr.isatty(), method=a.method,
+                        images=images)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     path = write_calibration(res, a.out, command=" ".join(["lidarcal", *sys.argv[1:]]))

@@ -16,7 +16,7 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import cv2
 import numpy as np
@@ -385,6 +385,10 @@ class ImagePrefetch:
     on demand; an unreadable image is kept as its :class:`DatasetError`, raised by
     :meth:`get` (so the caller's per-position error policy applies unchanged).
     Call :meth:`join` before forking worker processes (they then share the images).
+
+    Use it as a context manager (or call :meth:`close`): on leaving, decoding stops
+    after the image in hand and the thread is joined, so no thread is left inside
+    OpenCV when the interpreter exits (which aborts the process, status 134).
     """
 
     def __init__(self, positions: list[Position], image_size: tuple[int, int] | None,
@@ -397,19 +401,35 @@ class ImagePrefetch:
         if image_size is not None:
             n_max = int(max_bytes // max(image_size[0] * image_size[1], 1))
         self._todo = positions[:n_max]
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="lidarcal-prefetch", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         for p in self._todo:
+            if self._stop.is_set():
+                return
             try:
                 self._images[p.index] = read_stripe_image(p.stripe_image, self._size)
             except DatasetError as e:
                 self._images[p.index] = e
 
     def join(self) -> ImagePrefetch:
+        """Wait until every image is decoded."""
         self._thread.join()
         return self
+
+    def close(self) -> None:
+        """Stop decoding (after the image in hand) and join the thread; idempotent.
+        Images not decoded by then are read on demand by :meth:`get`'s caller."""
+        self._stop.set()
+        self._thread.join()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def get(self, pos: Position) -> np.ndarray | None:
         """The decoded image of ``pos`` (None: not prefetched, read it yourself)."""

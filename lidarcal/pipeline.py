@@ -3,10 +3,13 @@
 Section 1 of the paper runs once per turntable position (in parallel worker
 processes); section 2 fits the pose function of the turntable angle to the
 single-shot samples. Policy for bad positions: a position whose files are
-broken or whose stripe/scan cannot be solved stops the run with a one-line
-error naming the file (exit 2), unless ``skip_failed`` is set, in which case it
-is skipped with a warning while at least 3 usable positions remain. Positions
-can also be dropped explicitly (``skip``).
+broken or whose stripe/scan cannot be solved fails alone: it is skipped with a
+warning naming its file (kept in ``skipped`` and ``warnings``) while at least
+``MIN_POSITIONS`` usable positions remain, as OpenCV's and Kalibr's tools drop
+the frames they cannot use. ``strict`` makes any failure stop the run with a
+one-line error naming the file (exit 2). Positions can also be dropped
+explicitly (``skip``). Dataset-wide inputs (dataset.json, positions.csv,
+board.png, the camera) are always fatal.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import multiprocessing
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -247,9 +251,9 @@ def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]
 
 
 def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),
-              skip_failed: bool = False, method: str = DEFAULT_METHOD, progress: bool = False,
-              workers: int | None = None, images: ImagePrefetch | None = None
-              ) -> CalibrationResult:
+              strict: bool = False, method: str = DEFAULT_METHOD, progress: bool = False,
+              workers: int | None = None, images: ImagePrefetch | None = None,
+              skip_failed: bool | None = None) -> CalibrationResult:
     """Run sections 1 and 2 of the paper on a dataset folder.
 
     ``method`` picks the pose function that fills ``poses``: "joint" (the joint
@@ -258,38 +262,59 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     chain, eqs. 15-27). The paper's and the rigid fits are always computed (the
     joint fit starts from them). When the joint fit fails the rigid fit is used,
     with a warning.
-    ``images``: stripe images already being decoded (:class:`lidarcal.dataset.ImagePrefetch`);
-    by default they are decoded in a background thread while the boards are found.
+    ``strict``: a position that cannot be solved stops the run (:class:`DatasetError`
+    naming its file) instead of being skipped with a warning (the default, while at
+    least ``MIN_POSITIONS`` remain). ``skip_failed`` is accepted for old callers and
+    ignored (skipping is the default now).
+    ``images``: stripe images already being decoded (:class:`lidarcal.dataset.ImagePrefetch`,
+    closed by its owner); by default they are decoded in a background thread while the
+    boards are found, and that thread is stopped before returning or raising.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     skip = set(skip)
     todo = [p for p in ds.positions if p.index not in skip]
-    if images is None:
+    own = images is None
+    if own:
         images = ImagePrefetch(todo, ds.image_size)
-    camera, intr = camera_for(ds)
-    boards = find_boards(ds, camera)
-    _WORKER["images"] = images.join()  # joined: no thread runs when the workers fork
     try:
-        return _calibrate(ds, camera, intr, boards, todo, skip, skip_failed, method, progress,
+        camera, intr = camera_for(ds)
+        boards = find_boards(ds, camera)
+        _WORKER["images"] = images.join()  # joined: no thread runs when the workers fork
+        return _calibrate(ds, camera, intr, boards, todo, skip, strict, method, progress,
                           workers)
     finally:
         _WORKER.pop("images", None)
+        if own:
+            images.close()
+
+
+@contextmanager
+def _worker_pool(workers: int, camera: CameraModel, boards: tuple[BoardView, BoardView],
+                 lidar: LidarSpec):
+    """A process pool with the run's constants set once per worker; on any error (or
+    Ctrl-C) the queued tasks are cancelled and the workers joined before it propagates."""
+    ex = ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
+                             initargs=(camera, boards, lidar), mp_context=_fork_context())
+    try:
+        yield ex
+    except BaseException:
+        ex.shutdown(wait=True, cancel_futures=True)
+        raise
+    ex.shutdown(wait=True)
 
 
 def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
                boards: tuple[BoardView, BoardView], todo: list[Position], skip: set[int],
-               skip_failed: bool, method: str, progress: bool, workers: int | None
+               strict: bool, method: str, progress: bool, workers: int | None
                ) -> CalibrationResult:
     skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
     warnings: list[str] = []
     workers = workers or min(2, os.cpu_count() or 1)
     if workers > 1 and len(todo) > 4:
         # camera, boards and LiDAR spec go to each worker once (initializer), not with each task
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
-                                 initargs=(camera, boards, ds.lidar),
-                                 mp_context=_fork_context()) as ex:
+        with _worker_pool(workers, camera, boards, ds.lidar) as ex:
             picks = [todo[k] for k in _rho_picks(todo)]
             got = list(ex.map(_rho_samples_task, picks))
             samples = [s for ss in got if ss for s in ss]
@@ -302,19 +327,9 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
         rho = dataset_reflectance_ratio(camera, boards, todo)
         jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
         outcomes = [_solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
-    results: list[PositionResult] = []
-    for pos, out in zip(todo, outcomes):
-        if isinstance(out, DatasetError):
-            if not skip_failed:
-                raise out
-            skipped.append((pos.index, str(out)))
-            warnings.append(f"skipped position {pos.index}: {out}")
-        else:
-            results.append(out)
-    if len(results) < MIN_POSITIONS:
-        raise DatasetError(ds.root / "positions.csv",
-                           f"only {len(results)} usable position(s), the turntable fit needs at least "
-                           f"{MIN_POSITIONS}; capture more positions")
+    results, failed = _apply_skip_policy(ds, todo, outcomes, strict)
+    skipped += [(i, str(e)) for i, e in failed]
+    warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]
     psi = np.array([r.psi_deg for r in results])
     samples = [r.pose for r in results]
     paper = fit_paper(psi, samples)
@@ -333,6 +348,27 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
         else:
             warnings += [f"joint fit: {w}" for w in res.joint_model.warnings]
     return res
+
+
+def _apply_skip_policy(ds: Dataset, todo: list[Position], outcomes: list, strict: bool
+                       ) -> tuple[list[PositionResult], list[tuple[int, DatasetError]]]:
+    """Solved positions and the failed ones (index, error), per the module's policy: a
+    failure is fatal when ``strict`` or when fewer than ``MIN_POSITIONS`` would remain
+    (the first failure is raised then, naming its file, with the count)."""
+    results = [o for o in outcomes if not isinstance(o, DatasetError)]
+    failed = [(p.index, o) for p, o in zip(todo, outcomes) if isinstance(o, DatasetError)]
+    if failed and strict:
+        raise failed[0][1]
+    if len(results) < MIN_POSITIONS:
+        if failed:
+            first = failed[0][1]
+            raise DatasetError(first.path, f"{first.problem} ({len(failed)} of {len(todo)} "
+                                           f"positions failed, {len(results)} usable; the turntable "
+                                           f"fit needs at least {MIN_POSITIONS})")
+        raise DatasetError(ds.root / "positions.csv",
+                           f"only {len(results)} usable position(s), the turntable fit needs at least "
+                           f"{MIN_POSITIONS}; capture more positions")
+    return results, failed
 
 
 def _setup_warnings(psi: np.ndarray, results: list[PositionResult]) -> list[str]:
@@ -355,14 +391,15 @@ def _progress(it, total: int, enabled: bool):
 
 
 def dataset_hash(ds: Dataset) -> str:
-    """SHA-256 over dataset.json, positions.csv and every file they reference (provenance)."""
+    """SHA-256 over dataset.json, positions.csv and every file they reference (provenance;
+    a referenced file that is missing, as a skipped position's may be, counts as missing)."""
     h = hashlib.sha256()
     files = [ds.dataset_json, ds.root / "positions.csv", ds.board_image]
     for p in ds.positions:
         files += [p.stripe_image, p.scan]
     for f in files:
         h.update(os.path.relpath(f, ds.root).encode())  # files may live outside the folder
-        h.update(f.read_bytes())
+        h.update(f.read_bytes() if f.is_file() else b"<missing>")
     return h.hexdigest()
 
 

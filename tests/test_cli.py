@@ -140,34 +140,78 @@ def _corrupt(ds, case):
     raise AssertionError(case)
 
 
-BAD_CASES = ["missing png", "corrupt png", "wrong size", "board not found", "no stripe",
-             "scan no segment", "scan one segment", "nan range", "negative range",
-             "non-numeric range", "missing scan", "fewer than 3", "duplicate psi",
-             "incomplete positions", "malformed json", "incomplete json", "unknown format"]
+# a dataset-wide input is broken: always fatal
+FATAL_CASES = ["board not found", "fewer than 3", "duplicate psi", "incomplete positions",
+               "malformed json", "incomplete json", "unknown format"]
+# one position's files are broken: that position fails alone (skipped by default, fatal with
+# --strict)
+POSITION_CASES = ["missing png", "corrupt png", "wrong size", "no stripe", "scan no segment",
+                  "scan one segment", "nan range", "negative range", "non-numeric range",
+                  "missing scan"]
 
 
-@pytest.mark.parametrize("case", BAD_CASES)
+def _one_error_line(err: str, named: str) -> str:
+    lines = [ln for ln in err.splitlines() if not ln.startswith("warning:")]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert err.splitlines()[-1] == lines[0], err  # the error is the last line
+    assert named in lines[0], (named, lines[0])
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.mark.parametrize("case", FATAL_CASES)
 def test_bad_input_one_line_exit_2_no_output(dataset_copy, tmp_path, capsys, case):
     named = _corrupt(dataset_copy, case)
     out_dir = tmp_path / "out"
     code, out, err = run(["calibrate", str(dataset_copy), "--out", str(out_dir)], capsys)
     assert code == 2, (case, out, err)
-    lines = [ln for ln in err.splitlines() if not ln.startswith("warning:")]
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    assert named in lines[0], (named, lines[0])
-    assert "Traceback" not in err
-    assert not (out_dir / "calibration.json").exists()
+    _one_error_line(err, named)
+    assert not out_dir.exists()
 
 
-def test_skip_failed_drops_a_bad_position_with_a_warning(dataset_copy, tmp_path, capsys):
-    _corrupt(dataset_copy, "scan one segment")
-    code, _, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path), "--skip-failed"],
-                       capsys)
-    assert code == 0, err
-    assert "warning: skipped position 1" in err
+@pytest.mark.parametrize("case", POSITION_CASES)
+def test_a_position_that_fails_alone_is_skipped_unless_strict(dataset_copy, tmp_path, capsys, case):
+    """Default: the broken position is skipped with a warning naming its file (stderr,
+    ``warnings``, ``skipped``) and the other 3 are calibrated; --strict: exit 2 naming it."""
+    named = _corrupt(dataset_copy, case)
+    out_dir = tmp_path / "strict"
+    code, out, err = run(["calibrate", str(dataset_copy), "--out", str(out_dir), "--strict",
+                          "--method", "rigid"], capsys)
+    assert code == 2, (case, out, err)
+    _one_error_line(err, named)
+    assert not out_dir.exists()
+    code, _, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path), "--method",
+                        "rigid"], capsys)
+    assert code == 0, (case, err)
+    warned = [ln for ln in err.splitlines() if ln.startswith("warning: ") and named in ln]
+    assert len(warned) == 1 and "position 1 skipped" in warned[0], err
     cal = json.loads((tmp_path / "calibration.json").read_text())
     assert [s["index"] for s in cal["samples"]] == [0, 2, 3]
-    assert cal["skipped"][0]["index"] == 1 and "0001.csv" in cal["skipped"][0]["reason"]
+    assert [s["index"] for s in cal["skipped"]] == [1] and named in cal["skipped"][0]["reason"]
+    assert sum(named in w for w in cal["warnings"]) == 1
+
+
+def test_skip_failed_is_a_no_op_alias(dataset_copy, tmp_path, capsys):
+    """Old commands with --skip-failed still run, and do what the default does."""
+    _corrupt(dataset_copy, "scan one segment")
+    for k, extra in enumerate(([], ["--skip-failed"])):
+        code, _, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path / f"c{k}"),
+                            "--method", "rigid", *extra], capsys)
+        assert code == 0, err
+    a, b = (json.loads((tmp_path / f"c{k}" / "calibration.json").read_text()) for k in (0, 1))
+    assert a["skipped"] == b["skipped"] and a["poses"] == b["poses"]
+
+
+def test_too_few_positions_left_names_the_first_failure(dataset_copy, tmp_path, capsys):
+    """Two of 4 positions broken: 2 remain, fewer than the 3 the fit needs -> exit 2, naming
+    the first broken file and the count."""
+    _corrupt(dataset_copy, "corrupt png")
+    (dataset_copy / "scans" / "0002.csv").unlink()
+    code, _, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path / "o")], capsys)
+    assert code == 2
+    line = _one_error_line(err, "0001.png")
+    assert "2 of 4 positions failed, 2 usable" in line and "at least 3" in line
+    assert not (tmp_path / "o").exists()
 
 
 def test_explicit_skip(dataset_copy, tmp_path, capsys):
@@ -212,8 +256,8 @@ def _bundled_subset(tmp_path, n=8):
 
 
 def test_failed_position_in_worker_processes(tmp_path, capsys):
-    """Enough positions for the worker pool: a broken image comes back from a worker as a clear
-    error (exit 2), or as a skipped position with --skip-failed."""
+    """Enough positions for the worker pool: a broken image comes back from a worker as a
+    skipped position with a warning, or as a clear error (exit 2) with --strict."""
     ds = _bundled_subset(tmp_path)
     bad = tmp_path / "broken.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
@@ -221,13 +265,14 @@ def test_failed_position_in_worker_processes(tmp_path, capsys):
     i, psi, _, scan = text[4].split(",")
     text[4] = ",".join([i, psi, str(bad), scan])
     (ds / "positions.csv").write_text("\n".join(text) + "\n")
-    code, _, err = run(["calibrate", str(ds), "--out", str(tmp_path / "a"), "--method", "rigid"],
-                       capsys)
+    code, _, err = run(["calibrate", str(ds), "--out", str(tmp_path / "a"), "--method", "rigid",
+                        "--strict"], capsys)
     assert code == 2 and err.startswith("error: ") and "broken.png" in err, err
-    assert not (tmp_path / "a" / "calibration.json").exists()
-    code, _, err = run(["calibrate", str(ds), "--out", str(tmp_path / "b"), "--method", "rigid",
-                        "--skip-failed"], capsys)
+    assert not (tmp_path / "a").exists()
+    code, _, err = run(["calibrate", str(ds), "--out", str(tmp_path / "b"), "--method", "rigid"],
+                       capsys)
     assert code == 0, err
+    assert "warning: " + str(bad) in err and "position 3 skipped" in err
     cal = json.loads((tmp_path / "b" / "calibration.json").read_text())
     assert [s["index"] for s in cal["samples"]] == [0, 1, 2, 4, 5, 6, 7]
     assert "broken.png" in cal["skipped"][0]["reason"]
