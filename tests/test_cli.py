@@ -318,3 +318,83 @@ def test_methods_fill_poses_and_keep_the_others(small_dataset, tmp_path, capsys)
     assert code == 0
     shown = float(out.split("1-sigma: centre ")[1].split(" mm")[0])
     assert shown == pytest.approx(sig["poses"][1]["centre_mm"], rel=1e-3)
+
+
+# --- clean exits: whole processes, the bundled 87 positions (the background decoding of the
+# stripe images is still running when board.png fails; it used to abort the process, 134) ---
+
+def _linked_bundled(tmp_path):
+    """The bundled dataset with its own dataset.json, positions.csv and board.png (to break)
+    and the 87 stripe images and scans referenced by absolute path (not copied)."""
+    from conftest import BUNDLED
+
+    dst = tmp_path / "ds"
+    dst.mkdir()
+    (dst / "dataset.json").write_text((BUNDLED / "dataset.json").read_text())
+    (dst / "board.png").write_bytes((BUNDLED / "board.png").read_bytes())
+    rows = (BUNDLED / "positions.csv").read_text().splitlines()
+    out = [rows[0]]
+    for r in rows[1:]:
+        i, psi, img, scan = r.split(",")
+        out.append(",".join([i, psi, str(BUNDLED / img), str(BUNDLED / scan)]))
+    (dst / "positions.csv").write_text("\n".join(out) + "\n")
+    return dst
+
+
+def _break(ds, case):
+    """One of the issue's 10 early errors; returns the file name the error must end up naming."""
+    board, meta, pos = ds / "board.png", ds / "dataset.json", ds / "positions.csv"
+    if case == "corrupt board.png":
+        board.write_bytes(board.read_bytes()[:3000])
+    elif case == "missing board.png":
+        board.unlink()
+    elif case == "wrong-size board.png":
+        img = cv2.imread(str(board), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(board), cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2)))
+    elif case == "non-image board.png":
+        board.write_text("this is not an image\n")
+    elif case == "truncated dataset.json":
+        meta.write_text(meta.read_text()[: len(meta.read_text()) // 2])
+    elif case == "missing dataset.json":
+        meta.unlink()
+    elif case == "unknown-version dataset.json":
+        meta.write_text(meta.read_text().replace("lidarcal-dataset/1", "lidarcal-dataset/9"))
+    elif case == "too few positions":
+        pos.write_text("\n".join(pos.read_text().splitlines()[:3]) + "\n")
+    elif case == "non-numeric psi":
+        rows = pos.read_text().splitlines()
+        i, _, img, scan = rows[5].split(",")
+        rows[5] = ",".join([i, "12..5", img, scan])
+        pos.write_text("\n".join(rows) + "\n")
+    elif case == "duplicate psi":
+        rows = pos.read_text().splitlines()
+        i, _, img, scan = rows[7].split(",")
+        rows[7] = ",".join([i, rows[6].split(",")[1], img, scan])
+        pos.write_text("\n".join(rows) + "\n")
+    else:
+        raise AssertionError(case)
+    return {"b": "board.png", "d": "dataset.json"}.get(case.split()[-1][0], "positions.csv")
+
+
+# board.png fails while the stripe images are being decoded: a race, so several runs each
+EARLY_ERRORS = [("corrupt board.png", 3), ("missing board.png", 2), ("wrong-size board.png", 2),
+                ("non-image board.png", 3), ("truncated dataset.json", 1),
+                ("missing dataset.json", 1), ("unknown-version dataset.json", 1),
+                ("too few positions", 1), ("non-numeric psi", 1), ("duplicate psi", 1)]
+
+
+@pytest.mark.parametrize(("case", "runs"), EARLY_ERRORS, ids=[c for c, _ in EARLY_ERRORS])
+def test_early_error_exits_cleanly(tmp_path, case, runs):
+    """Exit 2, the one-line error naming the file is the last line on stderr, no traceback,
+    no abort, nothing written."""
+    ds = _linked_bundled(tmp_path)
+    named = _break(ds, case)
+    out_dir = tmp_path / "out"
+    for _ in range(runs):
+        p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(ds), "--out",
+                            str(out_dir)], capture_output=True, text=True, check=False)
+        assert p.returncode == 2, (case, p.returncode, p.stderr)
+        last = p.stderr.rstrip("\n").splitlines()[-1]
+        assert last.startswith("error: ") and named in last, (case, p.stderr)
+        assert "Traceback" not in p.stderr and "terminate" not in p.stderr, p.stderr
+        assert p.stdout == "" and not out_dir.exists()
