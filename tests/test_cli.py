@@ -364,7 +364,7 @@ def _break(ds, case):
     elif case == "non-numeric psi":
         rows = pos.read_text().splitlines()
         i, _, img, scan = rows[5].split(",")
-        rows[5] = ",".join([i, "12..5", img, scan])
+        rows[5] = f"{i},12..5,{img},{scan}"
         pos.write_text("\n".join(rows) + "\n")
     elif case == "duplicate psi":
         rows = pos.read_text().splitlines()
