@@ -154,11 +154,11 @@ def build(folder: Path, out_pdf: Path, execute_notebooks: bool = True, timeout: 
             parts.append(f"// ---- {path.name}\n#pagebreak(weak: true)\n{body}\n")
             dt = time.perf_counter() - t0
             listing.append((path.name, "executed" if execute_notebooks else "as stored", dt))
-        template = (Path(__file__).resolve().parent.parent / "lidarcal" / "report_template.typ")
+        template = (Path(__file__).resolve().parent.parent / "lidarcal" / "report" / "template.typ")
         try:
             from importlib import resources
 
-            tpl = resources.files("lidarcal").joinpath("report_template.typ").read_text()
+            tpl = resources.files("lidarcal.report").joinpath("template.typ").read_text()
         except (ModuleNotFoundError, FileNotFoundError):
             tpl = template.read_text()
         created = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")

@@ -1,0 +1,187 @@
+"""The report's numbers, from ``calibration.json`` / ``measurements.json`` only: the
+paper's Tables 1 and 2 reproduced, the comparisons behind them, the axes and the uncertainty
+summary."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+from ..evaluate import pose_error
+from ..geometry import Pose
+from .markup import fnum
+
+#: The paper's Table 1 (fitted function vs the 87 samples): (mean, max).
+PAPER_TABLE1 = {"centre_mm": (1.12, 2.72), "z_axis_deg": (0.203, 0.455),
+                "x_axis_deg": (0.662, 1.580)}
+
+#: The paper's Table 2: trial, diameter (mm), |error| (mm); reference 140 mm.
+PAPER_TABLE2 = [(1, 137.12, 2.88), (2, 135.80, 4.20), (3, 134.89, 5.11), (4, 142.63, 2.63),
+                (5, 138.48, 1.52), (6, 135.64, 4.36), (7, 141.57, 1.57), (8, 136.87, 3.13),
+                (9, 139.81, 0.19), (10, 142.08, 2.08)]
+PAPER_TABLE2_MEAN = (138.49, 2.77)  # mean diameter, mean |error|
+PAPER_REFERENCE_MM = 140.0
+
+#: Decimals used in the tables (tests format with the same precision).
+DECIMALS = {"centre_mm": 3, "z_axis_deg": 4, "x_axis_deg": 4, "diameter_mm": 2, "error_mm": 2}
+
+COMPARISON_COLUMNS = ("centre_mm", "z_axis_deg", "x_axis_deg")
+
+
+def _poses(rows: list[dict] | None) -> dict[int, Pose]:
+    return {int(r["index"]): Pose.from_dict(r) for r in rows or []}
+
+
+def model_poses(cal: dict, kind: str) -> dict[int, Pose]:
+    """Poses of pose function ``kind`` ("paper", "rigid" or "joint") at the positions, from
+    calibration.json."""
+    if cal.get("method") == kind:
+        return _poses(cal.get("poses"))
+    return _poses(cal.get(f"poses_{kind}"))
+
+
+def comparison(est: dict[int, Pose], ref: dict[int, Pose], psi: dict[int, float]) -> pd.DataFrame:
+    """Per position: ``pose_error(est, ref)`` (centre mm, z axis deg, x axis deg)."""
+    rows = [{"index": i, "psi_deg": psi.get(i, np.nan), **pose_error(est[i], ref[i])}
+            for i in sorted(est) if i in ref]
+    return pd.DataFrame(rows, columns=["index", "psi_deg", *COMPARISON_COLUMNS])
+
+
+def uncertainty_summary(cal: dict, truth: dict | None) -> str:
+    """The joint fit's reported 1-sigma (mean over positions) and, with ``truth.json``, how
+    often the true error of ``poses`` lies within 2 sigma; "" without a ``sigma`` block."""
+    sig = cal.get("sigma")
+    if not isinstance(sig, dict) or not sig.get("poses"):
+        return ""
+    qs = ("centre_mm", "z_axis_deg", "x_axis_deg")
+    rows = {int(r["index"]): r for r in sig["poses"]}
+    val = lambda r, q: np.inf if r.get(q) is None else float(r[q])
+    mean = {q: float(np.mean([val(r, q) for r in rows.values()])) for q in qs}
+    out = (f"centre {fnum(mean['centre_mm'], 3)} mm, z axis {fnum(mean['z_axis_deg'], 4)} deg, "
+           f"x axis {fnum(mean['x_axis_deg'], 4)} deg, axis direction "
+           f"{fnum(sig.get('axis_direction_deg') or np.inf, 4)} deg")
+    if sig.get("angle_jitter_deg"):
+        out += (f"; turntable encoder jitter {fnum(float(sig['angle_jitter_deg']), 4)} deg "
+                "(each position's angle corrected)")
+    if truth is not None and truth.get("poses"):
+        tp, est = _poses(truth["poses"]), _poses(cal.get("poses"))
+        inside = [pose_error(est[i], tp[i])[q] <= 2 * val(r, q)
+                  for i, r in rows.items() if i in tp and i in est for q in qs]
+        if inside:
+            out += (f"; the true error lies within 2 sigma for {100 * np.mean(inside):.0f} % of "
+                    "positions x quantities")
+    return out
+
+
+def comparisons(cal: dict, truth: dict | None) -> dict[str, pd.DataFrame]:
+    """Every Table 1 comparison available: each pose function vs the samples (the
+    paper's metric), and, with ``truth.json``, vs the true poses (and the samples vs truth)."""
+    psi = {int(r["index"]): float(r["psi_deg"]) for r in cal.get("samples", [])}
+    samples = _poses(cal.get("samples"))
+    out: dict[str, pd.DataFrame] = {}
+    models = [k for k in ("paper", "rigid", "joint") if model_poses(cal, k)]
+    for k in models:
+        out[f"{k} function vs samples"] = comparison(model_poses(cal, k), samples, psi)
+    if truth is not None and truth.get("poses"):
+        tp = _poses(truth["poses"])
+        for k in models:
+            out[f"{k} function vs truth"] = comparison(model_poses(cal, k), tp, psi)
+        out["samples vs truth"] = comparison(samples, tp, psi)
+    return out
+
+
+def table1(cal: dict, truth: dict | None = None) -> pd.DataFrame:
+    """Table 1 reproduced: one row per comparison, mean and max of each column.
+
+    Columns ``centre_mm_mean, centre_mm_max, z_axis_deg_mean, ...``; index is
+    the comparison label. The paper's published row is ``"paper (published)"``.
+    """
+    rows = {"paper (published)": {f"{c}_{s}": PAPER_TABLE1[c][j] for c in COMPARISON_COLUMNS
+                                  for j, s in enumerate(("mean", "max"))}}
+    for label, df in comparisons(cal, truth).items():
+        rows[label] = {f"{c}_{s}": float(getattr(df[c], s)()) if len(df) else np.nan
+                       for c in COMPARISON_COLUMNS for s in ("mean", "max")}
+    return pd.DataFrame.from_dict(rows, orient="index")
+
+
+def table2(meas: dict | None, truth: dict | None = None) -> tuple[pd.DataFrame, dict]:
+    """Table 2 reproduced from measurements.json: per trial and the summary.
+
+    Summary keys: ``trials``, ``mean_diameter_mm``, ``mean_error_mm`` (signed),
+    ``mean_abs_error_mm`` (the paper's "error" column is |error|), and
+    ``mean_abs_error_truth_mm`` when truth.json gives the true diameters.
+    """
+    rows = []
+    tdiam = {}
+    if truth is not None:
+        tdiam = {m.get("name"): m.get("diameter_mm") for m in truth.get("measurements", [])}
+    for m in (meas or {}).get("measurements", []):
+        d = float(m["diameter_mm"])
+        ref = m.get("reference_diameter_mm")
+        err = m.get("error_mm")
+        if err is None and ref is not None:
+            err = d - float(ref)
+        rows.append({"name": m.get("name", f"trial {len(rows) + 1}"), "diameter_mm": d,
+                     "reference_diameter_mm": np.nan if ref is None else float(ref),
+                     "error_mm": np.nan if err is None else float(err),
+                     "naive_diameter_mm": float(m["naive_diameter_mm"])
+                     if m.get("naive_diameter_mm") is not None else np.nan,
+                     "points": m.get("points"),
+                     "truth_diameter_mm": float(tdiam[m.get("name")])
+                     if tdiam.get(m.get("name")) is not None else np.nan})
+    df = pd.DataFrame(rows, columns=["name", "diameter_mm", "reference_diameter_mm", "error_mm",
+                                     "naive_diameter_mm", "points", "truth_diameter_mm"])
+    summ: dict = {"trials": len(df)}
+    if len(df):
+        summ["mean_diameter_mm"] = float(df["diameter_mm"].mean())
+        e = df["error_mm"].dropna()
+        if len(e):
+            summ["mean_error_mm"] = float(e.mean())
+            summ["mean_abs_error_mm"] = float(e.abs().mean())
+        t = df.dropna(subset=["truth_diameter_mm"])
+        if len(t):
+            summ["mean_abs_error_truth_mm"] = float((t["diameter_mm"] - t["truth_diameter_mm"])
+                                                   .abs().mean())
+        nv = df["naive_diameter_mm"].dropna()
+        if len(nv) and df["reference_diameter_mm"].notna().all():
+            summ["naive_mean_abs_error_mm"] = float(
+                (df.loc[nv.index, "naive_diameter_mm"] - df.loc[nv.index, "reference_diameter_mm"])
+                .abs().mean())
+    return df, summ
+
+
+def axes_table(cal: dict, truth: dict | None) -> pd.DataFrame:
+    """The turntable axis of each stored pose function, with its true error when known."""
+    from ..turntable import Axis, axis_distance_mm, model_from_dict
+
+    rows = []
+    T = np.array([r["T_mm"] for r in cal.get("samples", [])], dtype=float).reshape(-1, 3)
+    near = T.mean(0) if len(T) else np.zeros(3)
+    taxis = None
+    if truth is not None and truth.get("axis"):
+        taxis = Axis.from_point_direction(truth["axis"]["point_mm"], truth["axis"]["direction"])
+    for key in ("model", "model_paper", "model_rigid", "model_joint"):
+        d = cal.get(key)
+        if not isinstance(d, dict):
+            continue
+        try:
+            m = model_from_dict(d)
+        except (KeyError, TypeError, ValueError):
+            continue
+        kind = d.get("type", cal.get("method") if key == "model" else key.split("_", 1)[1])
+        if any(r["model"] == kind for r in rows):
+            continue
+        ax = Axis.from_point_direction(m.axis.point, m.axis.direction)
+        row = {"model": kind, "point_mm": ax.point, "direction": ax.direction,
+               "direction_err_deg": np.nan, "distance_err_mm": np.nan}
+        if taxis is not None:
+            a = math.degrees(math.acos(min(1.0, abs(float(ax.direction @ taxis.direction)))))
+            row["direction_err_deg"] = a
+            row["distance_err_mm"] = axis_distance_mm(ax, taxis, near)
+        rows.append(row)
+    if taxis is not None:
+        rows.append({"model": "truth", "point_mm": taxis.point, "direction": taxis.direction,
+                     "direction_err_deg": np.nan, "distance_err_mm": np.nan})
+    return pd.DataFrame(rows)
