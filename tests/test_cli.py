@@ -398,3 +398,17 @@ def test_early_error_exits_cleanly(tmp_path, case, runs):
         assert last.startswith("error: ") and named in last, (case, p.stderr)
         assert "Traceback" not in p.stderr and "terminate" not in p.stderr, p.stderr
         assert p.stdout == "" and not out_dir.exists()
+
+
+def test_report_early_error_exits_cleanly(tmp_path):
+    """`lidarcal report` runs the pipeline itself: its background decoding is stopped too."""
+    ds = _linked_bundled(tmp_path)
+    named = _break(ds, "non-image board.png")
+    pdf = tmp_path / "r" / "report.pdf"
+    for _ in range(2):
+        p = subprocess.run([sys.executable, "-m", "lidarcal", "report", str(ds), "--out", str(pdf)],
+                           capture_output=True, text=True, check=False)
+        assert p.returncode == 2, p.stderr
+        last = p.stderr.rstrip("\n").splitlines()[-1]
+        assert last.startswith("error: ") and named in last and "terminate" not in p.stderr
+        assert not pdf.parent.exists()
