@@ -412,3 +412,16 @@ def test_report_early_error_exits_cleanly(tmp_path):
         last = p.stderr.rstrip("\n").splitlines()[-1]
         assert last.startswith("error: ") and named in last and "terminate" not in p.stderr
         assert not pdf.parent.exists()
+
+
+def test_skipped_position_is_listed_in_the_report(dataset_copy, tmp_path, capsys):
+    from lidarcal.report import build_report_source, esc, gather_inputs
+
+    named = _corrupt(dataset_copy, "corrupt png")
+    assert run(["calibrate", str(dataset_copy), "--out", str(tmp_path), "--method", "rigid"],
+               capsys)[0] == 0
+    inp = gather_inputs(dataset_copy, tmp_path / "calibration.json")
+    src = build_report_source(inp, tmp_path, figures=False)
+    skipped = src.split("== Skipped positions")[1].split("== Warnings")[0]
+    assert esc(named)[2:-1] in skipped and "[1]" in skipped
+    assert "1 position(s) skipped" in src
