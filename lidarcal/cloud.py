@@ -113,8 +113,9 @@ def dataset_clouds(dataset: str | os.PathLike, calibration: str | os.PathLike, n
                    out: str | os.PathLike, frame: str = "camera", fmt: str = ".ply") -> list[Path]:
     """Write the cloud of each named sweep (all when ``names`` is None) of a dataset.
 
-    One sweep (``names`` of length 1): ``out`` is the file (suffix picks the
-    format; none: ``fmt``). Several: ``out`` is a folder, one ``NAME<fmt>`` each.
+    One named sweep: ``out`` is the file (its suffix picks the format; none:
+    ``fmt``). Several, or all (``names=None``): ``out`` is a folder, one
+    ``NAME<fmt>`` each.
     """
     from .api import load_calibration
     from .dataset import load_dataset
@@ -123,6 +124,7 @@ def dataset_clouds(dataset: str | os.PathLike, calibration: str | os.PathLike, n
     ds = load_dataset(dataset)
     cal = load_calibration(calibration)
     specs = {m.name: m for m in ds.measurements}
+    names_given = names is not None
     if names is None:
         if not specs:
             raise DatasetError(ds.dataset_json, "lists no 'measurements' (sweeps) to export")
@@ -133,11 +135,11 @@ def dataset_clouds(dataset: str | os.PathLike, calibration: str | os.PathLike, n
                                             f"known: {', '.join(specs) or 'none'}")
     fmt = fmt if fmt.startswith(".") else "." + fmt
     out = Path(out)
-    single = len(names) == 1 and out.suffix.lower() in FORMATS
-    if len(names) == 1 and not out.suffix:
-        out, single = out.with_suffix(fmt), True
+    single = names_given and len(names) == 1
+    if single and not out.suffix:
+        out = out.with_suffix(fmt)
     if single and out.suffix.lower() not in FORMATS:
-        raise DatasetError(out, f"unknown point-cloud format; use one of {', '.join(FORMATS)}")
+        raise DatasetError(out, f"unknown point-cloud format {out.suffix!r}; use one of {', '.join(FORMATS)}")
     written = []
     for name in names:
         sweep = read_sweep_with_intensity(specs[name].sweep, ds.lidar)

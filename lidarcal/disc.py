@@ -26,12 +26,22 @@ the order of their beam step). So::
   the same rig give ``k_i = (D_half,i - D_ref,i) / (2 u_i)``; ``k`` is their
   mean, ``sigma_k`` the larger of the propagated fit uncertainty and (with
   three or more references) the standard error of their spread.
-- **Prior** (``source: "prior"``, no reference): ``k`` is uniform on
-  ``[0, 0.6]`` beam spacings (``k = 0.3``, ``sigma_k = 0.6 / sqrt(12)``): 0 is
-  the symmetric half-share edge; 0.6 a first-echo scanner reporting the disc
-  once about a quarter of a spot of 1.5-2 beam spacings is on it. The edge
-  model's uncertainty then dominates ``diameter_sigma_mm``, so that the true
-  diameter lies within 2 sigma for the scanners in that range.
+- **Prior** (``source: "prior"``, no reference): ``k`` uniform on an interval
+  (mean the centre, ``sigma_k = width / sqrt(12)``) chosen by what the rim
+  shows. The *mixed share* is the fraction of rim crossings whose outer beam
+  is a mixed range (between disc and background) rather than a clean miss;
+  its median over the dataset's discs tells the echo physics:
+
+  * mixed share >= 0.6, an energy-mixing scanner (mixed ranges are what it
+    reports): its half-share edge is unbiased for a symmetric spot and equal
+    reflectivities; spot asymmetry and a brighter disc move it outwards:
+    ``k`` on ``[0, 0.3]``;
+  * otherwise a first-echo scanner with an unknown detection threshold: 0
+    for a threshold at half the spot, 0.6 for a first echo at about a quarter
+    of a spot 1.5-2 beam spacings wide: ``k`` on ``[0, 0.6]``.
+
+  The edge model's uncertainty then dominates ``diameter_sigma_mm``, so that
+  the true diameter lies within 2 sigma for the scanners in that range.
 """
 
 from __future__ import annotations
@@ -40,8 +50,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: prior edge offset, beam spacings: uniform on [PRIOR_K_LOW, PRIOR_K_HIGH]
-PRIOR_K_LOW, PRIOR_K_HIGH = 0.0, 0.6
+#: prior edge offset, beam spacings, uniform on these intervals (module docstring)
+PRIOR_K_FIRST_ECHO = (0.0, 0.6)
+PRIOR_K_MIXED = (0.0, 0.3)
+#: median mixed share at or above which the scanner is taken as energy-mixing
+MIXED_SHARE_MIN = 0.6
 #: a reference that implies an offset outside this range (beam spacings) is suspect
 PLAUSIBLE_K = (-0.5, 1.5)
 
@@ -53,15 +66,19 @@ class EdgeModel:
     k: float
     k_sigma: float
     source: str  # "prior" | "reference"
+    echo: str = "unknown"  # what the rim shows: "mixed" | "first-echo" | "unknown"
     references: tuple[str, ...] = ()
     k_references: tuple[float, ...] = ()
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @staticmethod
-    def prior() -> EdgeModel:
-        """No reference: uniform prior on [PRIOR_K_LOW, PRIOR_K_HIGH] beam spacings."""
-        lo, hi = PRIOR_K_LOW, PRIOR_K_HIGH
-        return EdgeModel(0.5 * (lo + hi), (hi - lo) / np.sqrt(12.0), "prior")
+    def prior(mixed_share: float | None = None) -> EdgeModel:
+        """No reference: uniform prior in beam spacings, chosen by the median mixed share."""
+        mixed = mixed_share is not None and np.isfinite(mixed_share) and mixed_share >= MIXED_SHARE_MIN
+        lo, hi = PRIOR_K_MIXED if mixed else PRIOR_K_FIRST_ECHO
+        echo = "unknown" if mixed_share is None or not np.isfinite(mixed_share) else \
+            ("mixed" if mixed else "first-echo")
+        return EdgeModel(0.5 * (lo + hi), (hi - lo) / np.sqrt(12.0), "prior", echo=echo)
 
     def apply(self, diameter_half_mm: float, fit_sigma_mm: float, spacing_mm: float) -> tuple[float, float]:
         """Corrected diameter and its 1-sigma (mm): ``D_half - 2 k u``, module docstring."""
@@ -70,11 +87,17 @@ class EdgeModel:
         return float(d), float(s)
 
     def to_dict(self) -> dict:
-        return {"type": "offset_beam_spacing", "source": self.source, "k": self.k,
+        return {"type": "offset_beam_spacing", "source": self.source, "echo": self.echo, "k": self.k,
                 "k_sigma": self.k_sigma, "references": list(self.references),
                 "k_references": list(self.k_references),
                 "formula": "diameter_mm = diameter_half_mm - 2 k beam_spacing_mm; "
                            "beam_spacing_mm = range to the disc x angle step (rad)"}
+
+
+def mixed_share(info: dict) -> float:
+    """Share of rim crossings whose outer beam is a mixed range, from ``DiscMeasurement.info``."""
+    n = info.get("crossings", 0)
+    return float(1.0 - info.get("hard_crossings", 0) / n) if n else float("nan")
 
 
 def beam_spacing_mm(center_mm: np.ndarray, lidar_origin_mm: np.ndarray, angle_step_deg: float) -> float:
@@ -162,7 +185,8 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                      "fit_sigma_mm": r.diameter_std_mm,
                      "beam_spacing_mm": beam_spacing_mm(r.center_mm, origin, ds.lidar.angle_step_deg),
                      "center_mm": r.center_mm.tolist(), "normal": r.normal.tolist(),
-                     "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm})
+                     "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm,
+                     "mixed_share": mixed_share(r.info)})
     if refs:
         sel = [row for row in rows if row["reference"]]
         edge = fit_edge_model([row["name"] for row in sel],
@@ -171,7 +195,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                               np.array([row["beam_spacing_mm"] for row in sel]),
                               np.array([row["reference_diameter_mm"] for row in sel]))
     else:
-        edge = EdgeModel.prior()
+        edge = EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows])))
     out = []
     for row in rows:
         d, s = edge.apply(row["diameter_half_mm"], row["fit_sigma_mm"], row["beam_spacing_mm"])
@@ -182,7 +206,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                     "center_mm": row["center_mm"], "normal": row["normal"], "points": row["points"],
                     "naive_diameter_mm": row["naive_diameter_mm"],
                     "diameter_half_mm": row["diameter_half_mm"], "beam_spacing_mm": row["beam_spacing_mm"],
-                    "edge_offset_mm": edge.k * row["beam_spacing_mm"]})
+                    "edge_offset_mm": edge.k * row["beam_spacing_mm"], "mixed_share": row["mixed_share"]})
     table = pd.DataFrame(out)
     table.attrs["edge_model"] = edge.to_dict()
     table.attrs["warnings"] = list(edge.warnings)
