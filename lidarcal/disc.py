@@ -46,7 +46,7 @@ the order of their beam step). So::
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -136,7 +136,8 @@ def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm:
     if not PLAUSIBLE_K[0] <= k <= PLAUSIBLE_K[1]:
         warns.append(f"the references imply a rim offset of {k:.2f} beam spacings, outside the plausible "
                      f"{PLAUSIBLE_K[0]:g}..{PLAUSIBLE_K[1]:g}; check their reference_diameter_mm and units")
-    return EdgeModel(k, ks, "reference", tuple(names), tuple(float(v) for v in ki), tuple(warns))
+    return EdgeModel(k, ks, "reference", references=tuple(names),
+                     k_references=tuple(float(v) for v in ki), warnings=tuple(warns))
 
 
 def measure_dataset(dataset, calibration, references: list[str] | None = None):
@@ -194,6 +195,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                               np.array([row["fit_sigma_mm"] for row in sel]),
                               np.array([row["beam_spacing_mm"] for row in sel]),
                               np.array([row["reference_diameter_mm"] for row in sel]))
+        edge = replace(edge, echo=EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows]))).echo)
     else:
         edge = EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows])))
     out = []
