@@ -20,7 +20,9 @@ the order of their beam step). So::
 
     D = D_half - 2 k u,    sigma_D^2 = sigma_fit^2 + (2 u sigma_k)^2
 
-``D_half`` the half-share diameter, ``sigma_fit`` its fit uncertainty.
+``D_half`` the half-share diameter, ``sigma_fit`` its random uncertainty (the
+larger of the least-squares sigma and a sector bootstrap of the rim
+crossings, :func:`random_sigma_mm`).
 
 - **Reference** (``source: "reference"``): discs of known diameter measured on
   the same rig give ``k_i = (D_half,i - D_ref,i) / (2 u_i)``; ``k`` is their
@@ -94,6 +96,39 @@ class EdgeModel:
                            "beam_spacing_mm = range to the disc x angle step (rad)"}
 
 
+def random_sigma_mm(measurement, sectors: int = 12, n_boot: int = 200, seed: int = 0) -> float:
+    """1-sigma of the half-share diameter from its rim crossings, by a sector (block) bootstrap.
+
+    The crossings of neighbouring scan lines share the rim's phase against the
+    beam grid, so their errors are correlated and the least-squares sigma
+    (``DiscMeasurement.diameter_std_mm``) is too small. Here the kept
+    crossings are grouped in ``sectors`` equal angular sectors around the
+    centre; sectors are resampled with replacement and the circle refitted
+    (Kasa's algebraic fit, :func:`lidarcal.geometry.fit_circle_2d_algebraic`);
+    the spread of the diameters is returned (0 when too few crossings).
+    """
+    from .geometry import fit_circle_2d_algebraic, plane_basis
+
+    q = np.asarray(measurement.crossings, float)[np.asarray(measurement.crossing_inlier, bool)]
+    if len(q) < 3 * sectors:
+        return 0.0
+    B = plane_basis(np.asarray(measurement.normal, float))
+    xy = (q - np.asarray(measurement.center_mm, float)) @ B.T
+    sec = np.minimum(((np.arctan2(xy[:, 1], xy[:, 0]) + np.pi) / (2 * np.pi) * sectors).astype(int),
+                     sectors - 1)
+    groups = [np.flatnonzero(sec == k) for k in range(sectors)]
+    groups = [g for g in groups if len(g)]
+    rng = np.random.default_rng(seed)
+    d = []
+    for _ in range(n_boot):
+        pick = np.concatenate([groups[i] for i in rng.integers(0, len(groups), len(groups))])
+        try:
+            d.append(2.0 * fit_circle_2d_algebraic(xy[pick])[1])
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+    return float(np.std(d, ddof=1)) if len(d) > 10 else 0.0
+
+
 def mixed_share(info: dict) -> float:
     """Share of rim crossings whose outer beam is a mixed range, from ``DiscMeasurement.info``."""
     n = info.get("crossings", 0)
@@ -143,7 +178,8 @@ def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm:
 def measure_dataset(dataset, calibration, references: list[str] | None = None):
     """Every disc of dataset.json ``measurements`` (section 3.2) with its edge model applied.
 
-    ``references``: names of measurements whose ``reference_diameter_mm`` is
+    ``calibration``: a ``calibration.json`` path or a pose function
+    (``.pose(psi_deg)``). ``references``: names of measurements whose ``reference_diameter_mm`` is
     trusted to calibrate the edge model (:func:`fit_edge_model`); without, the
     prior (:meth:`EdgeModel.prior`). Returns a DataFrame, one row per disc;
     ``attrs["edge_model"]`` holds the model, ``attrs["warnings"]`` its warnings.
@@ -155,7 +191,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
     from .measure import measure_disc
 
     ds = load_dataset(dataset)
-    cal = load_calibration(calibration)
+    cal = calibration if hasattr(calibration, "pose") else load_calibration(calibration)
     if not ds.measurements:
         raise DatasetError(ds.dataset_json, "lists no 'measurements' to measure")
     specs = {m.name: m for m in ds.measurements}
@@ -183,7 +219,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
         origin = cal.pose(float(np.median(sweep["psi_deg"].to_numpy(float)))).T
         rows.append({"name": m.name, "reference_diameter_mm": m.reference_diameter_mm,
                      "reference": m.name in refs, "diameter_half_mm": r.diameter_mm,
-                     "fit_sigma_mm": r.diameter_std_mm,
+                     "fit_sigma_mm": max(r.diameter_std_mm, random_sigma_mm(r)),
                      "beam_spacing_mm": beam_spacing_mm(r.center_mm, origin, ds.lidar.angle_step_deg),
                      "center_mm": r.center_mm.tolist(), "normal": r.normal.tolist(),
                      "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm,

@@ -181,6 +181,22 @@ def rig_plotter(poses: Sequence, boards_corners_mm: Sequence[np.ndarray] = (),
     return p
 
 
+def result_plotter(result, model=None, frames: int = 3, window_size: tuple[int, int] = WINDOW) -> pv.Plotter:
+    """The rig of a :class:`lidarcal.pipeline.CalibrationResult`: boards (from the board views),
+    camera, the LiDAR frame at ``frames`` angles over the turntable range (``model``, default
+    the result's pose function), its axis and the laser fans at the first and last angle."""
+    model = result.model if model is None else model
+    psi = np.sort(np.asarray(result.psi_deg, float))
+    pick = psi[np.linspace(0, len(psi) - 1, max(frames, 1)).round().astype(int)]
+    obj = result.dataset.v_board.object_points()
+    corners = [obj @ np.asarray(b.R, float).T + np.asarray(b.T, float) for b in result.boards]
+    ax = model.axis
+    lid = result.dataset.lidar
+    return rig_plotter([model.pose(float(a)) for a in pick], corners, None, (ax.point, ax.direction),
+                       K=result.camera.K, image_size=result.camera.image_size,
+                       aperture_deg=(lid.angle_min_deg, lid.angle_max_deg), window_size=window_size)
+
+
 def sweep_plotter(points_mm: np.ndarray, scalars: np.ndarray | None = None, name: str = "range_mm",
                   disc=None, window_size: tuple[int, int] = WINDOW) -> pv.Plotter:
     """A sweep cloud coloured by ``scalars`` and, when given, the fitted disc

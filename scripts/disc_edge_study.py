@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from lidarcal.dataset import LidarSpec
-from lidarcal.disc import EdgeModel, beam_spacing_mm, fit_edge_model, mixed_share
+from lidarcal.disc import EdgeModel, beam_spacing_mm, fit_edge_model, mixed_share, random_sigma_mm
 from lidarcal.measure import measure_disc
 from lidarcal.synthetic.config import get_rig
 from lidarcal.synthetic.lidar import beam_angles_deg, simulate_scans
@@ -49,7 +49,7 @@ def half_share(rig_name: str, footprint: str, seed: int, diameters=(100.0, 140.0
         m = measure_disc(sweep, TruePoses(truth), lidar)
         origin = truth.pose_at(float(np.median(d.psi_deg))).T
         rows.append({"rig": rig_name, "footprint": footprint, "seed": seed, "true_mm": 2 * d.disc.radius,
-                     "half_mm": m.diameter_mm, "fit_sigma_mm": m.diameter_std_mm,
+                     "half_mm": m.diameter_mm, "fit_sigma_mm": max(m.diameter_std_mm, random_sigma_mm(m)),
                      "mixed_share": mixed_share(m.info),
                      "u_mm": beam_spacing_mm(m.center_mm, origin, rig.lidar_angle_step_deg)})
     return rows

@@ -62,7 +62,7 @@ def rig_discs(request):
 
 
 def test_first_echo_model_makes_discs_look_larger_by_a_constant(rig_discs):
-    rows, (rig, fp, _) = rig_discs
+    rows, (_, fp, _) = rig_discs
     err = np.array([r["half"] - r["true"] for r in rows])
     if fp == "first-echo":  # rim at a quarter of the spot: outside the half-share rim, any size
         assert np.all(err > 0.5), err
@@ -73,7 +73,7 @@ def test_first_echo_model_makes_discs_look_larger_by_a_constant(rig_discs):
 
 
 def test_reference_140_calibrates_100_and_200(rig_discs):
-    rows, (rig, fp, _) = rig_discs
+    rows, _ = rig_discs
     ref = [r for r in rows if r["true"] == 140.0]
     em = fit_edge_model(["ref"], *(np.array([r[k] for r in ref]) for k in ("half", "sigma", "u", "true")))
     assert em.source == "reference" and not em.warnings
@@ -155,3 +155,37 @@ def test_reference_needs_known_diameter(tmp_path):
     cal = truth_calibration(SIM, tmp_path / "cal")
     with pytest.raises(DatasetError, match="reference_diameter_mm is not"):
         measure_dataset(ds, cal, references=["trial_01"])
+
+
+def test_cli_simulate_footprint_and_disc_sizes(monkeypatch, tmp_path):
+    """``simulate --footprint first-echo --disc-diameters 100,140,200`` reaches the rig config."""
+    import lidarcal.synthetic as synthetic
+    from lidarcal.cli import main
+
+    seen = {}
+
+    def fake(out, seed, rig, **kw):
+        seen["rig"] = rig
+        return out
+
+    monkeypatch.setattr(synthetic, "simulate", fake)
+    assert main(["simulate", str(tmp_path), "--footprint", "first-echo", "--disc-diameters", "100,140,200"]) == 0
+    rig = seen["rig"]
+    assert rig.footprint_model == "first-echo" and rig.disc_diameters_mm == (100.0, 140.0, 200.0)
+    assert [rig.disc_diameter(j) for j in range(4)] == [100.0, 140.0, 200.0, 100.0]
+    with pytest.raises(SystemExit):
+        main(["simulate", str(tmp_path), "--disc-diameters", "100,-5"])
+
+
+def test_simulated_first_echo_truth_and_references():
+    """The truth and dataset.json carry each disc's own diameter and the echo model."""
+    from lidarcal.synthetic.writer import dataset_json
+
+    rig = get_rig("paper").with_(footprint_model="first-echo", disc_diameters_mm=(100.0, 200.0), n_discs=3)
+    truth = make_truth(4, rig, with_intrinsics=False)
+    t = truth.to_dict()
+    assert [m["diameter_mm"] for m in t["measurements"]] == [100.0, 200.0, 100.0]
+    assert t["noise"]["footprint_model"] == "first-echo"
+    refs = [m["reference_diameter_mm"] for m in dataset_json(truth, False, True)["measurements"]]
+    assert refs == [100.0, 200.0, 100.0]
+    assert "footprint_model" not in make_truth(4, "paper", with_discs=False, with_intrinsics=False).to_dict()["noise"]
