@@ -159,7 +159,7 @@ def test_reference_needs_known_diameter(tmp_path):
 
 def test_cli_simulate_footprint_and_disc_sizes(monkeypatch, tmp_path):
     """``simulate --footprint first-echo --disc-diameters 100,140,200`` reaches the rig config."""
-    import lidarcal.synthetic as synthetic
+    from lidarcal import synthetic
     from lidarcal.cli import main
 
     seen = {}
@@ -189,3 +189,15 @@ def test_simulated_first_echo_truth_and_references():
     refs = [m["reference_diameter_mm"] for m in dataset_json(truth, False, True)["measurements"]]
     assert refs == [100.0, 200.0, 100.0]
     assert "footprint_model" not in make_truth(4, "paper", with_discs=False, with_intrinsics=False).to_dict()["noise"]
+
+
+def test_table2_columns_carry_sigma_and_reference_flags():
+    from lidarcal.disc import table2_columns
+
+    meas = {"measurements": [
+        {"name": "a", "diameter_mm": 140.1, "diameter_sigma_mm": 0.4, "reference_diameter_mm": 140.0,
+         "error_mm": 0.1, "reference": True},
+        {"name": "b", "diameter_mm": 99.8, "reference_diameter_mm": 100.0, "error_mm": -0.2}]}
+    cols = table2_columns(meas)
+    assert cols["name"] == ["a", "b"] and cols["diameter_sigma_mm"] == [0.4, None]
+    assert cols["reference"] == [True, False] and cols["error_mm"] == [0.1, -0.2]
