@@ -158,8 +158,10 @@ def rig_plotter(poses: Sequence, boards_corners_mm: Sequence[np.ndarray] = (),
     """
     p = new_plotter(window_size)
     poses = [_as_pose(q) for q in poses]
-    for q in poses:
-        add_frame(p, q)
+    allp = [q.T[None] for q in poses] + [np.asarray(c, float).reshape(-1, 3) for c in boards_corners_mm]
+    extent = float(np.ptp(np.vstack(allp), axis=0).max()) if allp else 1000.0
+    for q in poses:  # frames a tenth of the scene, so they show at its scale
+        add_frame(p, q, length_mm=max(0.1 * extent, 50.0))
     for c in boards_corners_mm:
         add_board(p, c)
     if scan_mm is not None and len(scan_mm):
