@@ -27,7 +27,8 @@ crossings, :func:`random_sigma_mm`).
 - **Reference** (``source: "reference"``): discs of known diameter measured on
   the same rig give ``k_i = (D_half,i - D_ref,i) / (2 u_i)``; ``k`` is their
   mean, ``sigma_k`` the larger of the propagated fit uncertainty and (with
-  three or more references) the standard error of their spread.
+  three or more references) the standard error of their spread; the sigma of
+  a disc at another range adds ``k |u - u_ref|`` (:meth:`EdgeModel.apply`).
 - **Prior** (``source: "prior"``, no reference): ``k`` uniform on an interval
   (mean the centre, ``sigma_k = width / sqrt(12)``) chosen by what the rim
   shows. The *mixed share* is the fraction of rim crossings whose outer beam
@@ -71,6 +72,7 @@ class EdgeModel:
     echo: str = "unknown"  # what the rim shows: "mixed" | "first-echo" | "unknown"
     references: tuple[str, ...] = ()
     k_references: tuple[float, ...] = ()
+    spacing_ref_mm: float | None = None  # mean beam spacing at the reference discs
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @staticmethod
@@ -83,15 +85,23 @@ class EdgeModel:
         return EdgeModel(0.5 * (lo + hi), (hi - lo) / np.sqrt(12.0), "prior", echo=echo)
 
     def apply(self, diameter_half_mm: float, fit_sigma_mm: float, spacing_mm: float) -> tuple[float, float]:
-        """Corrected diameter and its 1-sigma (mm): ``D_half - 2 k u``, module docstring."""
+        """Corrected diameter and its 1-sigma (mm): ``D_half - 2 k u``, module docstring.
+
+        From references, a third term covers the offset's unknown scaling with
+        range: ``k u`` (a spot growing with range) against a constant ``k u_ref``
+        (a spot set by the exit aperture) differ by ``2 k |u - u_ref|`` in
+        diameter; half of it enters the sigma.
+        """
         d = diameter_half_mm - 2.0 * self.k * spacing_mm
         s = np.hypot(fit_sigma_mm, 2.0 * spacing_mm * self.k_sigma)
+        if self.spacing_ref_mm is not None:
+            s = np.hypot(s, abs(self.k) * abs(spacing_mm - self.spacing_ref_mm))
         return float(d), float(s)
 
     def to_dict(self) -> dict:
         return {"type": "offset_beam_spacing", "source": self.source, "echo": self.echo, "k": self.k,
                 "k_sigma": self.k_sigma, "references": list(self.references),
-                "k_references": list(self.k_references),
+                "k_references": list(self.k_references), "beam_spacing_ref_mm": self.spacing_ref_mm,
                 "formula": "diameter_mm = diameter_half_mm - 2 k beam_spacing_mm; "
                            "beam_spacing_mm = range to the disc x angle step (rad)"}
 
@@ -172,7 +182,8 @@ def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm:
         warns.append(f"the references imply a rim offset of {k:.2f} beam spacings, outside the plausible "
                      f"{PLAUSIBLE_K[0]:g}..{PLAUSIBLE_K[1]:g}; check their reference_diameter_mm and units")
     return EdgeModel(k, ks, "reference", references=tuple(names),
-                     k_references=tuple(float(v) for v in ki), warnings=tuple(warns))
+                     k_references=tuple(float(v) for v in ki), spacing_ref_mm=float(np.mean(u)),
+                     warnings=tuple(warns))
 
 
 def measure_dataset(dataset, calibration, references: list[str] | None = None):
