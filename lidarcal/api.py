@@ -46,6 +46,20 @@ class Calibration:
             out[sel] = self.pose(value).apply(local[sel])
         return out
 
+    def cloud(self, sweep, frame: str = "camera", lidar=None):
+        """Every valid return of a sweep as a 3D point, eq. (28), psi per scan line.
+
+        ``sweep``: a DataFrame (psi_deg, angle_deg, range_mm[, intensity]) or
+        the path of a sweep file; ``frame``: ``"camera"`` or ``"home"`` (the
+        LiDAR frame at psi = 0). Returns a :class:`lidarcal.cloud.SweepCloud`
+        (``.points``, ``.attributes()``, ``.write(path)``).
+        """
+        from .cloud import read_sweep_with_intensity, sweep_cloud
+
+        if isinstance(sweep, (str, os.PathLike)):
+            sweep = read_sweep_with_intensity(sweep, lidar)
+        return sweep_cloud(sweep, self.model, frame=frame, lidar=lidar)
+
 
 def load_calibration(path: str | os.PathLike, model: str = "poses") -> Calibration:
     """Read ``calibration.json`` (a file or the folder holding it).

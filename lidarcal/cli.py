@@ -25,6 +25,16 @@ def _pattern(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected COLSxROWS inner corners like 9x6, got {text!r}") from None
 
 
+def _diameters(text: str) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected diameters in mm like 100,140,200, got {text!r}") from None
+    if not vals or min(vals) <= 0:
+        raise argparse.ArgumentTypeError(f"diameters must be > 0 mm, got {text!r}")
+    return vals
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidarcal", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
@@ -36,6 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rig", default="paper", help="rig preset: paper, wide, harsh")
     s.add_argument("--positions", type=int, default=None, help="number of turntable positions")
     s.add_argument("--no-sweeps", action="store_true", help="skip the disc-measurement sweeps")
+    s.add_argument("--footprint", choices=["gaussian", "first-echo"], default=None,
+                   help="LiDAR echo model: gaussian (energy-weighted mixed ranges, default) or "
+                        "first-echo (uniform spot, nearest surface with >= 25%% of the energy)")
+    s.add_argument("--disc-diameters", type=_diameters, default=None, metavar="D1,D2,...",
+                   help="disc sizes in mm, used in turn by the trials (e.g. 100,140,200)")
     s.add_argument("--overwrite", action="store_true")
 
     s = sub.add_parser("intrinsics", help="calibrate camera intrinsics from chessboard photos")
@@ -71,6 +86,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("dataset", type=Path)
     s.add_argument("--calibration", type=Path, required=True)
     s.add_argument("--out", type=Path, required=True, help="output folder for measurements.json")
+    s.add_argument("--reference", nargs="+", metavar="NAME", default=None,
+                   help="measurements whose reference_diameter_mm calibrates the edge model "
+                        "(applied to the others); without: the prior, with its sigma")
+
+    s = sub.add_parser("cloud", help="export sweeps as point clouds (eq. 28): .ply, .pcd, .vtp, .csv")
+    s.add_argument("dataset", type=Path)
+    s.add_argument("--calibration", type=Path, required=True)
+    g = s.add_mutually_exclusive_group(required=True)
+    g.add_argument("--sweep", nargs="+", metavar="NAME", help="measurement name(s) in dataset.json")
+    g.add_argument("--all", action="store_true", help="every sweep, one file each in the --out folder")
+    s.add_argument("--out", type=Path, required=True,
+                   help="output file (one sweep; suffix .ply/.pcd/.vtp/.csv) or folder")
+    s.add_argument("--frame", choices=["camera", "home"], default="camera",
+                   help="camera (default) or home: the LiDAR frame at turntable angle 0")
+    s.add_argument("--format", choices=["ply", "pcd", "vtp", "csv"], default="ply",
+                   help="format of files written into a folder (default ply, binary)")
 
     s = sub.add_parser("report", help="write the PDF calibration report")
     s.add_argument("dataset", type=Path)
@@ -82,8 +113,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from .synthetic import simulate
+    from .synthetic.config import get_rig
 
-    path = simulate(a.out, seed=a.seed, rig=a.rig, n_positions=a.positions,
+    rig = get_rig(a.rig)
+    if a.footprint is not None:
+        rig = rig.with_(footprint_model=a.footprint)
+    if a.disc_diameters is not None:
+        rig = rig.with_(disc_diameters_mm=a.disc_diameters)
+    path = simulate(a.out, seed=a.seed, rig=rig, n_positions=a.positions,
                     with_sweeps=not a.no_sweeps, overwrite=a.overwrite)
     print(f"wrote dataset {path}")
     return 0
@@ -158,10 +195,25 @@ def _cmd_pose(a: argparse.Namespace) -> int:
 def _cmd_measure(a: argparse.Namespace) -> int:
     from .pipeline import measure_dataset, write_measurements
 
-    table = measure_dataset(a.dataset, a.calibration)
+    table = measure_dataset(a.dataset, a.calibration, references=a.reference)
+    for w in table.attrs.get("warnings", []):
+        print(f"warning: {w}", file=sys.stderr)
     path = write_measurements(table, a.out, a.dataset)
-    print(table.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    cols = ["name", "diameter_mm", "diameter_sigma_mm", "reference_diameter_mm", "error_mm", "reference"]
+    print(table[cols].to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    em = table.attrs.get("edge_model", {})
+    if em:
+        print(f"edge model ({em['source']}): rim offset {em['k']:.3f} +- {em['k_sigma']:.3f} beam spacings")
     print(f"wrote {path}")
+    return 0
+
+
+def _cmd_cloud(a: argparse.Namespace) -> int:
+    from .cloud import dataset_clouds
+
+    for path in dataset_clouds(a.dataset, a.calibration, None if a.all else a.sweep, a.out,
+                               frame=a.frame, fmt=a.format):
+        print(f"wrote {path}")
     return 0
 
 
@@ -175,7 +227,8 @@ def _cmd_report(a: argparse.Namespace) -> int:
 
 
 COMMANDS = {"simulate": _cmd_simulate, "intrinsics": _cmd_intrinsics, "calibrate": _cmd_calibrate,
-            "pose": _cmd_pose, "measure": _cmd_measure, "report": _cmd_report}
+            "pose": _cmd_pose, "measure": _cmd_measure, "report": _cmd_report,
+            "cloud": _cmd_cloud}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -42,7 +42,6 @@ from .dataset import (
     read_image,
     read_scan,
     read_stripe_image,
-    read_sweep,
     write_json_atomic,
 )
 from .geometry import Pose
@@ -486,39 +485,20 @@ def write_calibration(res: CalibrationResult, out_dir: str | os.PathLike,
     return path
 
 
-def measure_dataset(dataset: str | os.PathLike, calibration: str | os.PathLike) -> pd.DataFrame:
-    """Every entry of dataset.json ``measurements``, measured with a calibration (section 3.2)."""
-    import pandas as pd
+def measure_dataset(dataset: str | os.PathLike, calibration: str | os.PathLike,
+                    references: list[str] | None = None) -> pd.DataFrame:
+    """Every entry of dataset.json ``measurements``, measured with a calibration (section 3.2),
+    with the edge model (reference discs or the prior) applied; see :mod:`lidarcal.disc`."""
+    from .disc import measure_dataset as _measure
 
-    from .api import load_calibration
-    from .measure import measure_disc
-
-    ds = load_dataset(dataset)
-    cal = load_calibration(calibration)
-    if not ds.measurements:
-        raise DatasetError(ds.dataset_json, "lists no 'measurements' to measure")
-    rows = []
-    for m in ds.measurements:
-        if m.object != "disc":
-            raise DatasetError(ds.dataset_json, f"measurement '{m.name}': object '{m.object}' is not "
-                                                "supported (only 'disc')")
-        sweep = read_sweep(m.sweep, ds.lidar)
-        try:
-            r = measure_disc(sweep, cal, ds.lidar)
-        except ValueError as e:
-            raise DatasetError(m.sweep, str(e)) from None
-        ref = m.reference_diameter_mm
-        rows.append({"name": m.name, "diameter_mm": r.diameter_mm, "reference_diameter_mm": ref,
-                     "error_mm": None if ref is None else r.diameter_mm - ref,
-                     "center_mm": r.center_mm.tolist(), "normal": r.normal.tolist(),
-                     "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm})
-    return pd.DataFrame(rows)
+    return _measure(dataset, calibration, references)
 
 
 def write_measurements(table: pd.DataFrame, out_dir: str | os.PathLike,
                        dataset: str | os.PathLike) -> Path:
     path = Path(out_dir) / "measurements.json"
     rows = [{k: v for k, v in r.items()} for r in table.to_dict(orient="records")]
+    extra = {k: table.attrs[k] for k in ("edge_model", "warnings") if k in table.attrs}
     write_json_atomic(path, {"format": MEASUREMENTS_FORMAT, "dataset": str(Path(dataset).resolve()),
-                             "measurements": rows})
+                             **extra, "measurements": rows})
     return path

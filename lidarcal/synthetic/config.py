@@ -94,8 +94,21 @@ class RigConfig:
     disc_beam_angle_deg: float = 20.0              # max |beam angle| of the disc centre
     sweep_step_deg: float = 0.05
     sweep_margin_deg: float = 0.4                  # extra psi before and after the disc
+    # disc sizes: trial j has disc_diameters_mm[j % len] when given (else disc_diameter_mm)
+    disc_diameters_mm: tuple[float, ...] = ()
+    # --- footprint / echo model of the LiDAR (lidar.py): "gaussian" = Gaussian spot,
+    # energy-weighted mixed echo; "first-echo" = uniform (top-hat) spot of the same diameter,
+    # the nearest surface returning >= echo_threshold of the energy wins alone (no mixing) ---
+    footprint_model: str = "gaussian"
+    echo_threshold: float = 0.25
     # LiDAR reflectivities (relative energy) of the materials
     lidar_reflectivity: tuple[float, float, float, float] = (0.8, 0.5, 0.4, 0.7)  # board, wall, post, disc
+
+    def disc_diameter(self, j: int) -> float:
+        """Diameter (mm) of disc trial ``j``: ``disc_diameters_mm`` in turn, else ``disc_diameter_mm``."""
+        if self.disc_diameters_mm:
+            return float(self.disc_diameters_mm[j % len(self.disc_diameters_mm)])
+        return float(self.disc_diameter_mm)
 
     def with_(self, **changes) -> RigConfig:
         """A copy with some fields changed (``dataclasses.replace``)."""
@@ -159,6 +172,8 @@ HARSH = PAPER.with_(
     beam_divergence_mrad=3.0,
     mixed_dominant=0.95,
 )
+
+FOOTPRINT_MODELS = ("gaussian", "first-echo")
 
 RIGS: dict[str, RigConfig] = {"paper": PAPER, "wide": WIDE, "harsh": HARSH}
 

@@ -24,6 +24,14 @@ is added; in the harsh preset ``spurious_rate`` of the beams get a uniform
 random range and ``drop_rate`` of them return nothing. Ranges are rounded to
 0.1 mm as written.
 
+Second model, ``footprint_model = "first-echo"`` (a pulsed first-return
+scanner): the spot is uniform (top-hat, equal sub-ray weights) out to the same
+radius, and the echo is the *nearest* surface that returns at least
+``echo_threshold`` of the footprint's energy, at its own energy-weighted range:
+never a mixed range. The rim is then found where ``echo_threshold`` of the
+returned energy comes from the disc, outside the half-energy point, so the
+disc looks larger by a fraction of the spot (what an edge model must absorb).
+
 Speed: each beam is first probed with 7 sub-rays (centre + 6 on the outer
 ring); only beams whose probes do not all hit the same surface are traced
 with the full footprint. A surface boundary that cuts only a sliver of the
@@ -45,13 +53,21 @@ from .config import RigConfig
 from .scene import BLACK, DISC, POST, WALL, WHITE, materials, surface_normals, trace
 
 
-def footprint_pattern(rings: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-ray offsets in the unit disc (M, 2) and Gaussian energy weights (M,) summing to 1."""
+def footprint_pattern(rings: int, profile: str = "gaussian") -> tuple[np.ndarray, np.ndarray]:
+    """Sub-ray offsets in the unit disc (M, 2) and energy weights (M,) summing to 1.
+
+    ``profile``: ``"gaussian"`` (weight ``exp(-2 s^2)``, the 1/e^2 radius at s = 1) or
+    ``"uniform"`` (top-hat: equal weights; ring i holds 6 i sub-rays, so equal area each).
+    """
     pts = [np.zeros((1, 2))]
     for i in range(1, rings + 1):
         a = 2 * np.pi * (np.arange(6 * i) + 0.5 * (i % 2)) / (6 * i)
         pts.append(i / rings * np.column_stack([np.cos(a), np.sin(a)]))
     s = np.vstack(pts)
+    if profile == "uniform":
+        return s, np.full(len(s), 1.0 / len(s))
+    if profile != "gaussian":
+        raise ValueError(f"unknown footprint profile {profile!r}; expected 'gaussian' or 'uniform'")
     w = np.exp(-2 * (s**2).sum(1))
     return s, w / w.sum()
 
@@ -111,6 +127,33 @@ def _echo(t: np.ndarray, idx: np.ndarray, e: np.ndarray, n_surf: int, rig: RigCo
     return np.where(tot >= rig.detect_energy, np.nan_to_num(rng_mm), 0.0)
 
 
+def _first_echo(t: np.ndarray, idx: np.ndarray, e: np.ndarray, n_surf: int,
+                rig: RigConfig) -> np.ndarray:
+    """First-echo return of beams (N, M sub-rays): the nearest surface with >= ``echo_threshold``
+    of the returned energy, at its energy-weighted range (never mixed). 0 = no return."""
+    E = np.zeros((n_surf,) + t.shape[:-1])
+    Rs = np.full_like(E, np.inf)
+    for k in range(n_surf):
+        ek = np.where(idx == k, e, 0.0)
+        E[k] = ek.sum(-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Rs[k] = np.where(E[k] > 0, (ek * t).sum(-1) / E[k], np.inf)
+    tot = E.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        strong = E / tot >= rig.echo_threshold
+    rng_mm = np.where(strong, Rs, np.inf).min(0)
+    return np.where((tot >= rig.detect_energy) & np.isfinite(rng_mm), rng_mm, 0.0)
+
+
+def _echo_function(rig: RigConfig):
+    """The echo model and spot profile of ``rig.footprint_model``."""
+    if rig.footprint_model == "gaussian":
+        return _echo, "gaussian"
+    if rig.footprint_model == "first-echo":
+        return _first_echo, "uniform"
+    raise ValueError(f"unknown footprint_model {rig.footprint_model!r}; expected 'gaussian' or 'first-echo'")
+
+
 def simulate_scans(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
                    rng: np.random.Generator, angles_deg: np.ndarray | None = None) -> np.ndarray:
     """Ranges (P, B) in mm (0 = no return) of the LiDAR at poses ``R`` (P, 3, 3), ``T`` (P, 3).
@@ -121,7 +164,8 @@ def simulate_scans(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
     T = np.asarray(T, dtype=float).reshape(-1, 3)
     ang = np.radians(beam_angles_deg(rig) if angles_deg is None else np.asarray(angles_deg, float))
     B, P = len(ang), len(R)
-    s, wgt = footprint_pattern(rig.footprint_rings)
+    echo, profile = _echo_function(rig)
+    s, wgt = footprint_pattern(rig.footprint_rings, profile)
     M = len(s)
     c, sn = np.cos(ang), np.sin(ang)
     d = np.column_stack([c, sn, np.zeros(B)])
@@ -156,7 +200,7 @@ def simulate_scans(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
             orig = (np.einsum("fij,fmj->fmi", Rc[pi], o_sub) + Tc[pi][:, None, :]).reshape(-1, 3)
             tf, idf = trace(surfaces, dirs, origins=orig)
             tf, idf, ef = _energy(surfaces, tf, idf, orig, dirs, np.tile(wgt, len(pi)), refl, rig)
-            res[pi, bi] = _echo(tf.reshape(len(pi), M), idf.reshape(len(pi), M), ef.reshape(len(pi), M),
+            res[pi, bi] = echo(tf.reshape(len(pi), M), idf.reshape(len(pi), M), ef.reshape(len(pi), M),
                                 len(surfaces), rig)
         out[p0:p0 + n] = res
     ok = out > 0

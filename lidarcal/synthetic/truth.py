@@ -25,6 +25,13 @@ _DOWN = np.array([0.0, 1.0, 0.0])   # camera +y: down
 _FORWARD = np.array([0.0, 0.0, 1.0])
 
 
+def _footprint_truth(rig: RigConfig) -> dict:
+    """The LiDAR's echo model in truth.json (only when it is not the default Gaussian one)."""
+    if rig.footprint_model == "gaussian":
+        return {}
+    return {"footprint_model": rig.footprint_model, "echo_threshold": rig.echo_threshold}
+
+
 def _rng(seed: int, stream: int, index: int = 0) -> np.random.Generator:
     return np.random.default_rng([int(seed), stream, int(index)])
 
@@ -204,7 +211,8 @@ class RigTruth:
                       "beam_exit_mm": rig.beam_exit_mm, "beam_divergence_mrad": rig.beam_divergence_mrad,
                       "mixed_dominant": rig.mixed_dominant, "spurious_rate": rig.spurious_rate,
                       "drop_rate": rig.drop_rate, "read_noise_dn": rig.read_noise_dn,
-                      "bright_noise_dn": rig.bright_noise_dn, "psf_sigma_px": rig.psf_sigma_px},
+                      "bright_noise_dn": rig.bright_noise_dn, "psf_sigma_px": rig.psf_sigma_px,
+                      **_footprint_truth(rig)},
             "intrinsics_views": [v.to_dict() for v in self.intrinsics_views],
             "measurements": [d.to_dict() for d in self.discs],
         }
@@ -377,7 +385,7 @@ def _sample_disc(truth: RigTruth, j: int) -> DiscTrial | None:
         c = pose.apply(np.array([D * np.cos(beta), D * np.sin(beta), 0.0]))[0]
         view = unit(c - pose.T)
         normal = _tilted(-view, rig.disc_tilt_deg, rng)
-        R = rig.disc_diameter_mm / 2
+        R = rig.disc_diameter(j) / 2
         disc = Disc(c, normal, R)
         # a background panel (finite: beams past it get no return) behind the disc
         wall_n = _tilted(view, 10.0, rng)

@@ -94,7 +94,7 @@ def dataset_json(truth: RigTruth, with_intrinsics: bool, with_sweeps: bool) -> d
                     "angle_step_deg": rig.lidar_angle_step_deg, "range_min_mm": rig.lidar_range_min_mm,
                     "range_max_mm": rig.lidar_range_max_mm, "z_axis_hint": [0, -1, 0]}
     out["measurements"] = [{"name": d.name, "sweep": f"measure/{d.name}.csv.gz", "object": "disc",
-                            "reference_diameter_mm": rig.disc_diameter_mm}
+                            "reference_diameter_mm": float(2 * d.disc.radius)}
                            for d in (truth.discs if with_sweeps else [])]
     out["synthetic"] = {"generator": "lidarcal.synthetic", "rig": rig.name, "seed": truth.seed}
     return out

@@ -1,0 +1,278 @@
+"""The disc's edge response: an edge model, calibrated on reference discs or taken from a prior.
+
+:func:`lidarcal.measure.measure_disc` places the rim where half of the beam's
+spot is on the disc (the half-share crossing). That is exact for a symmetric
+spot with energy-weighted mixed ranges, but a real scanner's edge response is
+unknown until measured: a first-echo scanner that reports the disc once a
+quarter of its spot is on it sees the disc larger by a fraction of the spot;
+unequal reflectivities move the half-energy point. Whatever the physics, the
+result is a radial offset of the detected rim that scales with the beam's
+footprint at the disc, the same for discs of any size.
+
+Edge model (``type: "offset_beam_spacing"``)
+-------------------------------------------
+The detected rim lies ``delta = k * u`` outside the true rim, with ``u`` the
+beam spacing at the disc, ``u = rho * angle_step`` (``rho`` the range from the
+LiDAR to the disc centre at the middle of the sweep, ``angle_step`` the
+LiDAR's beam step in radians): the one footprint scale every dataset states
+(the beam divergence is not in the data; scanners are built with spots of
+the order of their beam step). So::
+
+    D = D_half - 2 k u,    sigma_D^2 = sigma_fit^2 + (2 u sigma_k)^2
+
+``D_half`` the half-share diameter, ``sigma_fit`` its random uncertainty (the
+larger of the least-squares sigma and a sector bootstrap of the rim
+crossings, :func:`random_sigma_mm`).
+
+- **Reference** (``source: "reference"``): discs of known diameter measured on
+  the same rig give ``k_i = (D_half,i - D_ref,i) / (2 u_i)``; ``k`` is their
+  mean, ``sigma_k`` the larger of the propagated fit uncertainty and (with
+  three or more references) the standard error of their spread; the sigma of
+  a disc at another range adds ``k |u - u_ref|`` (:meth:`EdgeModel.apply`).
+- **Prior** (``source: "prior"``, no reference): ``k`` uniform on an interval
+  (mean the centre, ``sigma_k = width / sqrt(12)``) chosen by what the rim
+  shows. The *mixed share* is the fraction of rim crossings whose outer beam
+  is a mixed range (between disc and background) rather than a clean miss;
+  its median over the dataset's discs tells the echo physics:
+
+  * mixed share >= 0.6, an energy-mixing scanner (mixed ranges are what it
+    reports): its half-share edge is unbiased for a symmetric spot and equal
+    reflectivities; spot asymmetry and a brighter disc move it outwards:
+    ``k`` on ``[0, 0.3]``;
+  * otherwise a first-echo scanner with an unknown detection threshold: 0
+    for a threshold at half the spot, 0.6 for a first echo at about a quarter
+    of a spot 1.5-2 beam spacings wide: ``k`` on ``[0, 0.6]``.
+
+  The edge model's uncertainty then dominates ``diameter_sigma_mm``, so that
+  the true diameter lies within 2 sigma for the scanners in that range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+#: prior edge offset, beam spacings, uniform on these intervals (module docstring)
+PRIOR_K_FIRST_ECHO = (0.0, 0.6)
+PRIOR_K_MIXED = (0.0, 0.3)
+#: median mixed share at or above which the scanner is taken as energy-mixing
+MIXED_SHARE_MIN = 0.6
+#: a reference that implies an offset outside this range (beam spacings) is suspect
+PLAUSIBLE_K = (-0.5, 1.5)
+
+
+@dataclass(frozen=True)
+class EdgeModel:
+    """Radial offset of the detected rim, ``delta = k * u`` (u: beam spacing at the disc, mm)."""
+
+    k: float
+    k_sigma: float
+    source: str  # "prior" | "reference"
+    echo: str = "unknown"  # what the rim shows: "mixed" | "first-echo" | "unknown"
+    references: tuple[str, ...] = ()
+    k_references: tuple[float, ...] = ()
+    spacing_ref_mm: float | None = None  # mean beam spacing at the reference discs
+    warnings: tuple[str, ...] = field(default=(), compare=False)
+
+    @staticmethod
+    def prior(mixed_share: float | None = None) -> EdgeModel:
+        """No reference: uniform prior in beam spacings, chosen by the median mixed share."""
+        mixed = mixed_share is not None and np.isfinite(mixed_share) and mixed_share >= MIXED_SHARE_MIN
+        lo, hi = PRIOR_K_MIXED if mixed else PRIOR_K_FIRST_ECHO
+        echo = "unknown" if mixed_share is None or not np.isfinite(mixed_share) else \
+            ("mixed" if mixed else "first-echo")
+        return EdgeModel(0.5 * (lo + hi), (hi - lo) / np.sqrt(12.0), "prior", echo=echo)
+
+    def apply(self, diameter_half_mm: float, fit_sigma_mm: float, spacing_mm: float) -> tuple[float, float]:
+        """Corrected diameter and its 1-sigma (mm): ``D_half - 2 k u``, module docstring.
+
+        From references, a third term covers the offset's unknown scaling with
+        range: ``k u`` (a spot growing with range) against a constant ``k u_ref``
+        (a spot set by the exit aperture) differ by ``2 k |u - u_ref|`` in
+        diameter; half of it enters the sigma.
+        """
+        d = diameter_half_mm - 2.0 * self.k * spacing_mm
+        s = np.hypot(fit_sigma_mm, 2.0 * spacing_mm * self.k_sigma)
+        if self.spacing_ref_mm is not None:
+            s = np.hypot(s, abs(self.k) * abs(spacing_mm - self.spacing_ref_mm))
+        return float(d), float(s)
+
+    def to_dict(self) -> dict:
+        return {"type": "offset_beam_spacing", "source": self.source, "echo": self.echo, "k": self.k,
+                "k_sigma": self.k_sigma, "references": list(self.references),
+                "k_references": list(self.k_references), "beam_spacing_ref_mm": self.spacing_ref_mm,
+                "formula": "diameter_mm = diameter_half_mm - 2 k beam_spacing_mm; "
+                           "beam_spacing_mm = range to the disc x angle step (rad)"}
+
+
+def random_sigma_mm(measurement, sectors: int = 12, n_boot: int = 200, seed: int = 0) -> float:
+    """1-sigma of the half-share diameter from its rim crossings, by a sector (block) bootstrap.
+
+    The crossings of neighbouring scan lines share the rim's phase against the
+    beam grid, so their errors are correlated and the least-squares sigma
+    (``DiscMeasurement.diameter_std_mm``) is too small. Here the kept
+    crossings are grouped in ``sectors`` equal angular sectors around the
+    centre; sectors are resampled with replacement and the circle refitted
+    (Kasa's algebraic fit, :func:`lidarcal.geometry.fit_circle_2d_algebraic`);
+    the spread of the diameters is returned (0 when too few crossings).
+    """
+    from .geometry import fit_circle_2d_algebraic, plane_basis
+
+    q = np.asarray(measurement.crossings, float)[np.asarray(measurement.crossing_inlier, bool)]
+    if len(q) < 3 * sectors:
+        return 0.0
+    B = plane_basis(np.asarray(measurement.normal, float))
+    xy = (q - np.asarray(measurement.center_mm, float)) @ B.T
+    sec = np.minimum(((np.arctan2(xy[:, 1], xy[:, 0]) + np.pi) / (2 * np.pi) * sectors).astype(int),
+                     sectors - 1)
+    groups = [np.flatnonzero(sec == k) for k in range(sectors)]
+    groups = [g for g in groups if len(g)]
+    rng = np.random.default_rng(seed)
+    d = []
+    for _ in range(n_boot):
+        pick = np.concatenate([groups[i] for i in rng.integers(0, len(groups), len(groups))])
+        try:
+            d.append(2.0 * fit_circle_2d_algebraic(xy[pick])[1])
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+    return float(np.std(d, ddof=1)) if len(d) > 10 else 0.0
+
+
+def mixed_share(info: dict) -> float:
+    """Share of rim crossings whose outer beam is a mixed range, from ``DiscMeasurement.info``."""
+    n = info.get("crossings", 0)
+    return float(1.0 - info.get("hard_crossings", 0) / n) if n else float("nan")
+
+
+def beam_spacing_mm(center_mm: np.ndarray, lidar_origin_mm: np.ndarray, angle_step_deg: float) -> float:
+    """Beam spacing at the disc, ``u = rho * angle_step`` (mm), the edge model's unit."""
+    rho = float(np.linalg.norm(np.asarray(center_mm, float) - np.asarray(lidar_origin_mm, float)))
+    return rho * np.radians(angle_step_deg)
+
+
+def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm: np.ndarray,
+                   spacing_mm: np.ndarray, reference_mm: np.ndarray) -> EdgeModel:
+    """Edge offset ``k`` from reference discs of known diameter (module docstring).
+
+    Each reference gives ``k_i = (D_half,i - D_ref,i) / (2 u_i)``; returns their
+    mean with ``sigma_k`` = max(propagated fit sigma, spread / sqrt(n) for n >= 3).
+    A ``k`` outside :data:`PLAUSIBLE_K` or references that disagree by more
+    than 4 sigma are reported in ``warnings`` (a wrong reference diameter?).
+    """
+    d = np.asarray(diameter_half_mm, float)
+    s = np.asarray(fit_sigma_mm, float)
+    u = np.asarray(spacing_mm, float)
+    ref = np.asarray(reference_mm, float)
+    if len(d) == 0:
+        raise ValueError("fit_edge_model needs at least one reference disc")
+    ki = (d - ref) / (2.0 * u)
+    si = s / (2.0 * u)
+    k = float(np.mean(ki))
+    ks = float(np.sqrt(np.sum(si**2)) / len(ki))
+    warns = []
+    if len(ki) >= 2:
+        spread = float(np.std(ki, ddof=1))
+        if len(ki) >= 3:
+            ks = max(ks, spread / np.sqrt(len(ki)))
+        if spread > 4.0 * max(float(np.sqrt(np.mean(si**2))), 0.02):
+            warns.append(f"the reference discs disagree: edge offsets {', '.join(f'{v:.3f}' for v in ki)} "
+                         "beam spacings; check their reference_diameter_mm")
+    if not PLAUSIBLE_K[0] <= k <= PLAUSIBLE_K[1]:
+        warns.append(f"the references imply a rim offset of {k:.2f} beam spacings, outside the plausible "
+                     f"{PLAUSIBLE_K[0]:g}..{PLAUSIBLE_K[1]:g}; check their reference_diameter_mm and units")
+    return EdgeModel(k, ks, "reference", references=tuple(names),
+                     k_references=tuple(float(v) for v in ki), spacing_ref_mm=float(np.mean(u)),
+                     warnings=tuple(warns))
+
+
+def measure_dataset(dataset, calibration, references: list[str] | None = None):
+    """Every disc of dataset.json ``measurements`` (section 3.2) with its edge model applied.
+
+    ``calibration``: a ``calibration.json`` path or a pose function
+    (``.pose(psi_deg)``). ``references``: names of measurements whose ``reference_diameter_mm`` is
+    trusted to calibrate the edge model (:func:`fit_edge_model`); without, the
+    prior (:meth:`EdgeModel.prior`). Returns a DataFrame, one row per disc;
+    ``attrs["edge_model"]`` holds the model, ``attrs["warnings"]`` its warnings.
+    """
+    import pandas as pd
+
+    from .api import load_calibration
+    from .dataset import DatasetError, load_dataset, read_sweep
+    from .measure import measure_disc
+
+    ds = load_dataset(dataset)
+    cal = calibration if hasattr(calibration, "pose") else load_calibration(calibration)
+    if not ds.measurements:
+        raise DatasetError(ds.dataset_json, "lists no 'measurements' to measure")
+    specs = {m.name: m for m in ds.measurements}
+    refs = list(dict.fromkeys(references or []))
+    for name in refs:
+        if name not in specs:
+            raise DatasetError(ds.dataset_json, f"--reference {name}: no measurement of that name; "
+                                                f"known: {', '.join(specs)}")
+        if specs[name].reference_diameter_mm is None:
+            raise DatasetError(ds.dataset_json, f"--reference {name}: its reference_diameter_mm is not "
+                                                "given; a reference needs its known diameter")
+    if refs and len(refs) == len(specs):
+        raise DatasetError(ds.dataset_json, "every measurement is a --reference; leave at least one "
+                                            "to measure")
+    rows = []
+    for m in ds.measurements:
+        if m.object != "disc":
+            raise DatasetError(ds.dataset_json, f"measurement '{m.name}': object '{m.object}' is not "
+                                                "supported (only 'disc')")
+        sweep = read_sweep(m.sweep, ds.lidar)
+        try:
+            r = measure_disc(sweep, cal, ds.lidar)
+        except ValueError as e:
+            raise DatasetError(m.sweep, str(e)) from None
+        origin = cal.pose(float(np.median(sweep["psi_deg"].to_numpy(float)))).T
+        rows.append({"name": m.name, "reference_diameter_mm": m.reference_diameter_mm,
+                     "reference": m.name in refs, "diameter_half_mm": r.diameter_mm,
+                     "fit_sigma_mm": max(r.diameter_std_mm, random_sigma_mm(r)),
+                     "beam_spacing_mm": beam_spacing_mm(r.center_mm, origin, ds.lidar.angle_step_deg),
+                     "center_mm": r.center_mm.tolist(), "normal": r.normal.tolist(),
+                     "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm,
+                     "mixed_share": mixed_share(r.info)})
+    if refs:
+        sel = [row for row in rows if row["reference"]]
+        edge = fit_edge_model([row["name"] for row in sel],
+                              np.array([row["diameter_half_mm"] for row in sel]),
+                              np.array([row["fit_sigma_mm"] for row in sel]),
+                              np.array([row["beam_spacing_mm"] for row in sel]),
+                              np.array([row["reference_diameter_mm"] for row in sel]))
+        edge = replace(edge, echo=EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows]))).echo)
+    else:
+        edge = EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows])))
+    out = []
+    for row in rows:
+        d, s = edge.apply(row["diameter_half_mm"], row["fit_sigma_mm"], row["beam_spacing_mm"])
+        ref = row["reference_diameter_mm"]
+        out.append({"name": row["name"], "diameter_mm": d, "diameter_sigma_mm": s,
+                    "reference_diameter_mm": ref, "error_mm": None if ref is None else d - ref,
+                    "reference": row["reference"],
+                    "center_mm": row["center_mm"], "normal": row["normal"], "points": row["points"],
+                    "naive_diameter_mm": row["naive_diameter_mm"],
+                    "diameter_half_mm": row["diameter_half_mm"], "beam_spacing_mm": row["beam_spacing_mm"],
+                    "edge_offset_mm": edge.k * row["beam_spacing_mm"], "mixed_share": row["mixed_share"]})
+    table = pd.DataFrame(out)
+    table.attrs["edge_model"] = edge.to_dict()
+    table.attrs["warnings"] = list(edge.warnings)
+    return table
+
+
+def table2_columns(measurements: dict) -> dict[str, list]:
+    """Table 2 columns from a ``measurements.json`` dict: name, diameter, 1-sigma, reference, error.
+
+    For the report's Table 2: ``diameter_sigma_mm`` is the 1-sigma including
+    the edge model; ``reference`` marks the discs that calibrated it (their
+    error is not a test).
+    """
+    rows = measurements.get("measurements", [])
+    return {"name": [r["name"] for r in rows],
+            "diameter_mm": [r["diameter_mm"] for r in rows],
+            "diameter_sigma_mm": [r.get("diameter_sigma_mm") for r in rows],
+            "reference_diameter_mm": [r.get("reference_diameter_mm") for r in rows],
+            "error_mm": [r.get("error_mm") for r in rows],
+            "reference": [bool(r.get("reference", False)) for r in rows]}
