@@ -39,9 +39,10 @@ def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
     root = rig_folder.parent
     out = {}
     for name, kw in {
-        "ros1_raw": dict(storage="rosbag1", images="raw", extra_joint=True),
-        "ros2_png": dict(storage="sqlite3", images="png", angle_msg="float64"),
-        "mcap_jpeg": dict(storage="mcap", images="jpeg", encoder_step_deg=0.001, sweeps=False),
+        "ros1_raw": {"storage": "rosbag1", "images": "raw", "extra_joint": True},
+        "ros2_png": {"storage": "sqlite3", "images": "png", "angle_msg": "float64"},
+        "mcap_jpeg": {"storage": "mcap", "images": "jpeg", "encoder_step_deg": 0.001,
+                      "sweeps": False},
     }.items():
         bag = root / (f"{name}.bag" if kw["storage"] == "rosbag1" else name)
         write_bag(rig_folder, bag, rig_json=root / f"{name}.json", seed=1, **kw)
@@ -51,7 +52,7 @@ def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
 
 def lidarcal(*args) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "lidarcal", *map(str, args)],
-                          capture_output=True, text=True)
+                          check=False, capture_output=True, text=True)
 
 
 def assert_same_dataset(a: Path, b: Path, exact_images: bool = True) -> None:
@@ -190,3 +191,93 @@ def test_board_image_file_and_overwrite(bags, rig_folder, tmp_path):
     assert not (out / "old").exists()
     assert np.array_equal(cv2.imread(str(out / "board.png")), cv2.imread(str(board)))
     assert not list(tmp_path.glob(".ds.*"))  # no temporary folder left behind
+
+
+@pytest.fixture(scope="module")
+def ros2_types():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.LATEST).types
+
+
+def _hdr(types):
+    return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                        frame_id="cam")
+
+
+@pytest.mark.parametrize("enc", ["mono8", "mono16", "bgr8", "rgb8", "rgba8"])
+def test_image_encodings(ros2_types, enc):
+    from lidarcal.io.bag import IMAGE, image_from_msg
+
+    rng = np.random.default_rng(0)
+    h, w = 5, 7
+    bgr = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    gray = bgr[:, :, 1].copy()
+    pad = 3  # row padding: step > width * bytes per pixel
+    if enc == "mono8":
+        rows, want = gray, gray
+    elif enc == "mono16":
+        rows, want = (gray.astype("<u2") * 256 + 100).view(np.uint8).reshape(h, 2 * w), gray
+    elif enc == "bgr8":
+        rows, want = bgr.reshape(h, 3 * w), bgr
+    elif enc == "rgb8":
+        rows, want = bgr[:, :, ::-1].reshape(h, 3 * w), bgr
+    else:
+        rgba = np.concatenate([bgr[:, :, ::-1], np.full((h, w, 1), 255, np.uint8)], axis=2)
+        rows, want = rgba.reshape(h, 4 * w), bgr
+    data = np.concatenate([rows, np.zeros((h, pad), np.uint8)], axis=1)
+    msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
+                            is_bigendian=0, step=data.shape[1], data=data.reshape(-1))
+    assert np.array_equal(image_from_msg(msg, IMAGE, "t"), want)
+    bad = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding="yuv422",
+                            is_bigendian=0, step=2 * w, data=np.zeros(2 * w * h, np.uint8))
+    with pytest.raises(DatasetError, match="'yuv422' is not supported"):
+        image_from_msg(bad, IMAGE, "t")
+
+
+def test_compressed_png16_and_bad_data(ros2_types):
+    from lidarcal.io.bag import COMPRESSED, image_from_msg
+
+    img16 = (np.arange(12, dtype=np.uint16).reshape(3, 4) * 5000)
+    ok, buf = cv2.imencode(".png", img16)
+    msg = ros2_types[COMPRESSED](header=_hdr(ros2_types), format="mono16; png compressed",
+                                 data=buf.reshape(-1))
+    assert np.array_equal(image_from_msg(msg, COMPRESSED, "t"),
+                          np.clip((img16.astype(int) + 128) // 256, 0, 255))
+    junk = ros2_types[COMPRESSED](header=_hdr(ros2_types), format="png",
+                                  data=np.frombuffer(b"nope", np.uint8))
+    with pytest.raises(DatasetError, match="cannot be decoded"):
+        image_from_msg(junk, COMPRESSED, "t")
+
+
+def test_laserscan_units_invalid_returns_and_clockwise(ros2_types):
+    from lidarcal.io.bag import LASERSCAN, scan_from_msg
+
+    r = np.array([0.0, 1.0, np.inf, np.nan, 0.05, 31.0, 2.5], dtype=np.float32)
+    msg = ros2_types[LASERSCAN](header=_hdr(ros2_types), angle_min=np.radians(10.0),
+                                angle_max=np.radians(-20.0), angle_increment=np.radians(-5.0),
+                                time_increment=0.001, scan_time=0.025, range_min=0.1,
+                                range_max=30.0, ranges=r, intensities=np.zeros(0, np.float32))
+    s = scan_from_msg(msg, 7.0)
+    assert s.angle_min_deg == pytest.approx(-20.0) and s.angle_step_deg == pytest.approx(5.0)
+    want = np.array([2500.0, np.nan, np.nan, np.nan, np.nan, 1000.0, np.nan])  # reversed, mm
+    assert np.array_equal(np.isnan(s.range_mm), np.isnan(want))
+    assert np.allclose(s.range_mm[~np.isnan(want)], want[~np.isnan(want)])
+    assert (s.t0, s.t1, s.t_mid) == pytest.approx((7.0, 7.006, 7.003))
+
+
+def test_intrinsics_folder_is_copied(bags, tmp_path):
+    bag, rig = bags["ros2_png"]
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    img = np.random.default_rng(0).integers(0, 256, (40, 60), dtype=np.uint8)
+    cv2.imwrite(str(photos / "a.png"), img)
+    cv2.imwrite(str(photos / "b.jpg"), img)
+    (photos / "notes.txt").write_text("not a photo")
+    spec = {k: v for k, v in json.loads(rig.read_text()).items() if k != "camera"}
+    spec.update(intrinsics="photos", intrinsics_board={"inner_corners": [9, 6], "square_mm": 25.0})
+    (tmp_path / "rig.json").write_text(json.dumps(spec))
+    import_bag(bag, tmp_path / "rig.json", tmp_path / "ds")
+    ds = load_dataset(tmp_path / "ds")
+    assert ds.camera is None and [p.name for p in ds.intrinsics_images()] == ["a.png", "b.png"]
+    assert np.array_equal(cv2.imread(str(tmp_path / "ds" / "intrinsics" / "a.png"), 0), img)

@@ -41,9 +41,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..dataset import DATASET_FORMAT, DEFAULT_Z_AXIS_HINT, DatasetError, parse_camera, write_json_atomic
+from ..dataset import (
+    DATASET_FORMAT,
+    DEFAULT_Z_AXIS_HINT,
+    DatasetError,
+    parse_camera,
+    write_json_atomic,
+)
 from ..stationary import (
-    Period,
     default_min_duration_s,
     default_tolerance_deg,
     encoder_resolution_deg,

@@ -187,9 +187,9 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
         """The calibration stop whose angle is held (within the band) over [t0, t1]."""
         j = bisect.bisect_right(arrivals, t0 + 0.2)
         for s in cal_stops[max(j - 2, 0): j + 1]:
-            if s.t_a - 0.2 <= t0 and t1 <= s.t_d + 0.2:
-                if max(abs(motion(x) - s.psi) for x in np.linspace(t0, t1, 5)) <= hold_band_deg:
-                    return s
+            if (s.t_a - 0.2 <= t0 and t1 <= s.t_d + 0.2
+                    and max(abs(motion(x) - s.psi) for x in np.linspace(t0, t1, 5)) <= hold_band_deg):
+                return s
         return None
 
     # --- the events, in log-time order: (log_s, order, kind, stamp_s, payload)
