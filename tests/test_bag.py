@@ -239,7 +239,7 @@ def test_compressed_png16_and_bad_data(ros2_types):
     from lidarcal.io.bag import COMPRESSED, image_from_msg
 
     img16 = (np.arange(12, dtype=np.uint16).reshape(3, 4) * 5000)
-    ok, buf = cv2.imencode(".png", img16)
+    _, buf = cv2.imencode(".png", img16)
     msg = ros2_types[COMPRESSED](header=_hdr(ros2_types), format="mono16; png compressed",
                                  data=buf.reshape(-1))
     assert np.array_equal(image_from_msg(msg, COMPRESSED, "t"),
