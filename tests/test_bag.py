@@ -281,3 +281,14 @@ def test_intrinsics_folder_is_copied(bags, tmp_path):
     ds = load_dataset(tmp_path / "ds")
     assert ds.camera is None and [p.name for p in ds.intrinsics_images()] == ["a.png", "b.png"]
     assert np.array_equal(cv2.imread(str(tmp_path / "ds" / "intrinsics" / "a.png"), 0), img)
+
+
+@pytest.mark.parametrize("k", [2, 3, 4, 5, 8, 27])
+def test_combine_frames_is_the_per_pixel_median(k):
+    from lidarcal.io.bag import combine_frames
+
+    rng = np.random.default_rng(k)
+    frames = [rng.integers(0, 256, (6, 9, 3), dtype=np.uint8) for _ in range(k)]
+    want = np.floor(np.median(np.stack(frames).astype(float), axis=0) + 0.5)
+    got = combine_frames(frames)
+    assert got.dtype == np.uint8 and np.array_equal(got, want)

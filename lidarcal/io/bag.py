@@ -371,7 +371,7 @@ class _Acc:
 
 
 def _fmt_range(v: float) -> str:
-    return "0" if not np.isfinite(v) else f"{v:.1f}"
+    return f"{v:.1f}" if math.isfinite(v) else "0"
 
 
 def scan_csv_text(angles_deg: np.ndarray, range_mm: np.ndarray) -> str:
@@ -389,10 +389,26 @@ def combine_scans(ranges: list[np.ndarray]) -> np.ndarray:
 
 
 def combine_frames(frames: list[np.ndarray]) -> np.ndarray:
-    """Per-pixel median of the frames, rounded to 8 bits."""
-    if len(frames) == 1:
+    """Per-pixel median of 8-bit frames (an even count: the two middle values' mean, half up).
+
+    Up to 25 frames are sorted per pixel by an odd-even transposition network of
+    ``np.minimum``/``np.maximum`` on whole frames (contiguous, ~10x faster than
+    ``np.median`` along a stacked axis); more fall back to ``np.median``.
+    """
+    k = len(frames)
+    if k == 1:
         return frames[0]
-    return np.rint(np.median(np.stack(frames), axis=0)).astype(np.uint8)
+    if k > 25:
+        stack = np.stack(frames).astype(np.float32)
+        return np.floor(np.median(stack, axis=0) + 0.5).astype(np.uint8)
+    s = list(frames)
+    for i in range(k):
+        for j in range(i % 2, k - 1, 2):
+            s[j], s[j + 1] = np.minimum(s[j], s[j + 1]), np.maximum(s[j], s[j + 1])
+    if k % 2:
+        return s[k // 2]
+    a, b = s[k // 2 - 1].astype(np.uint16), s[k // 2]
+    return ((a + b + 1) // 2).astype(np.uint8)
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
