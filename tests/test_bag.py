@@ -43,6 +43,8 @@ def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
         "ros2_png": {"storage": "sqlite3", "images": "png", "angle_msg": "float64"},
         "mcap_jpeg": {"storage": "mcap", "images": "jpeg", "encoder_step_deg": 0.001,
                       "sweeps": False},
+        "lidar_clock": {"storage": "sqlite3", "images": "raw", "sweeps": False,
+                        "scan_clock_offset_s": -3600.0},
     }.items():
         bag = root / (f"{name}.bag" if kw["storage"] == "rosbag1" else name)
         write_bag(rig_folder, bag, rig_json=root / f"{name}.json", seed=1, **kw)
@@ -138,6 +140,16 @@ def test_mcap_jpeg_quantised_encoder(bags, rig_folder, tmp_path):
     assert 2 - 1e-6 <= counts <= 4 + 1e-6 and abs(counts - round(counts)) < 1e-6
     assert_same_dataset(rig_folder, tmp_path / "ds", exact_images=False)
     assert "measurements" in json.loads((tmp_path / "ds" / "dataset.json").read_text())
+
+
+def test_scans_stamped_on_another_clock_use_receive_times(bags, rig_folder, tmp_path):
+    bag, rig = bags["lidar_clock"]
+    res = import_bag(bag, rig, tmp_path / "ds")
+    assert "/scan: header stamps are -3.6e+03 s from the bag's receive times" in res.warnings[0]
+    assert_same_dataset(rig_folder, tmp_path / "ds")
+    clock = json.loads((tmp_path / "ds" / "dataset.json").read_text())["import"]["clock"]
+    assert clock == {"/turntable/joint_states": "header", "/scan": "log",
+                     "/camera/stripes/image_raw": "header", "/camera/board/image_raw": "header"}
 
 
 def test_errors_one_line(bags, tmp_path):

@@ -13,9 +13,9 @@ only the frames of the position being combined are held in memory.
 - turntable angle: ``sensor_msgs/JointState`` (radians; ``joint`` picks the name) or
   ``std_msgs/Float64`` (radians, or degrees with ``angle_unit="deg"``).
 
-Clock: every message's time is its ``header.stamp``; when the angle topic has no
-header (Float64) every message's bag (log) time is used instead, so that all times
-come from one clock. Positions are the stationary periods of the angle
+Clock: a message's time is its ``header.stamp``; a message without a header (Float64),
+or a topic whose stamps are more than 1 s from the bag's receive (log) times (another
+clock), uses its log time instead (a scan then ends at its log time). Positions are the stationary periods of the angle
 (:mod:`lidarcal.stationary`); a scan is used when all its beams fall inside a period,
 a frame when its stamp does. Per position: the per-beam median of the valid returns
 and the per-pixel median of the stripe frames; ``psi_deg`` is the median angle of
@@ -35,7 +35,7 @@ import os
 import shutil
 import tempfile
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -186,13 +186,37 @@ class Scan:
         return 0.5 * (self.t0 + self.t1)
 
 
-def _stamp(msg, log_ns: int, clock: str) -> float:
-    if clock == "header":
-        st = msg.header.stamp
-        ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
-        if ns > 0:
-            return ns * 1e-9
-    return log_ns * 1e-9
+_FOREIGN_CLOCK_S = 1.0  # stamps further than this from the log times are on another clock
+
+
+def _header_s(msg) -> float:
+    hdr = getattr(msg, "header", None)
+    return 0.0 if hdr is None else int(hdr.stamp.sec) + int(hdr.stamp.nanosec) * 1e-9
+
+
+class Clock:
+    """Message times: ``header.stamp`` per topic while it is on the bag's clock, else log time.
+
+    Decided on a topic's first message: no header or a zero stamp -> ``"log"``; a stamp
+    more than 1 s from the message's log time (a sensor clock, not the recorder's) ->
+    ``"log"`` with a note; otherwise ``"header"``.
+    """
+
+    def __init__(self) -> None:
+        self.mode: dict[str, str] = {}
+        self.notes: list[str] = []
+
+    def time(self, topic: str, msg, log_ns: int) -> float:
+        log = log_ns * 1e-9
+        st = _header_s(msg)
+        mode = self.mode.get(topic)
+        if mode is None:
+            mode = "header" if st > 0 and abs(st - log) <= _FOREIGN_CLOCK_S else "log"
+            if st > 0 and mode == "log":
+                self.notes.append(f"{topic}: header stamps are {st - log:+.3g} s from the bag's "
+                                  "receive times (another clock); its receive times are used")
+            self.mode[topic] = mode
+        return st if mode == "header" and st > 0 else log
 
 
 def scan_from_msg(msg, t0: float) -> Scan:
@@ -292,16 +316,14 @@ def _connections(reader, topic: str | None) -> list:
 class AngleStream:
     t_s: np.ndarray  # sorted
     psi_deg: np.ndarray
-    clock: str  # "header" or "log"
-    offset_s: float = 0.0  # median (message time - bag log time): maps bag-relative windows
 
 
-def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path) -> AngleStream:
+def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path,
+                clock: Clock) -> AngleStream:
     """All turntable readings of ``topic`` (one pass over that topic only), in degrees."""
     conns = _connections(reader, topic)
     msgtype = conns[0].msgtype
-    clock = "header" if msgtype == JOINTSTATE else "log"
-    ts, ps, logs = [], [], []
+    ts, ps = [], []
     idx: int | None = None
     for conn, log_ns, raw in reader.messages(connections=conns):
         msg = reader.deserialize(raw, conn.msgtype)
@@ -325,16 +347,14 @@ def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path) -> 
             val = float(pos[idx])
         if not math.isfinite(val):
             continue
-        ts.append(_stamp(msg, log_ns, clock))
-        logs.append(log_ns * 1e-9)
+        ts.append(clock.time(topic, msg, log_ns))
         ps.append(math.degrees(val) if unit == "rad" else val)
     if len(ts) < 3:
         raise DatasetError(bag, f"{topic}: {len(ts)} usable angle reading(s); need a turntable "
                                 "angle stream (--angle-topic, --joint)")
     t, p = np.asarray(ts), np.asarray(ps)
     order = np.argsort(t, kind="stable")
-    offset = float(np.median(t - np.asarray(logs)))
-    return AngleStream(t[order], p[order], clock, offset)
+    return AngleStream(t[order], p[order])
 
 
 # ----------------------------------------------------------------------------- import
@@ -528,7 +548,8 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
             min_duration_s, frame_guard_s, overwrite, progress) -> ImportResult:
     from tqdm import tqdm
 
-    angles = read_angles(reader, topics["angle"], joint, angle_unit, bag)
+    clock = Clock()
+    angles = read_angles(reader, topics["angle"], joint, angle_unit, bag, clock)
     scan_conns = _connections(reader, topics["scan"])
     scan_count = sum(c.msgcount for c in scan_conns)
     span = max(reader.duration * 1e-9, 1e-9)
@@ -541,7 +562,7 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
                                 f"got {tol}, {min_dur}")
     periods = find_stationary(angles.t_s, angles.psi_deg, tol, min_dur)
     t_bag0 = reader.start_time * 1e-9
-    clock0 = t_bag0 + angles.offset_s  # windows are seconds from the bag's first message
+    clock0 = t_bag0  # windows are seconds from the bag's first message
     windows = [(w, clock0 + w.start_s, clock0 + w.end_s) for w in rigf.sweeps]
     periods = [p for p in periods if not any(a <= p.t_end and p.t_start <= b for _, a, b in windows)]
     if not periods:
@@ -554,7 +575,7 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
     tmp = _prepare_out(out, overwrite)
     try:
         result = _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_dur,
-                         board_image, progress, tqdm, clock0, frame_guard_s)
+                         board_image, progress, tqdm, clock0, frame_guard_s, clock)
         _finish_out(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -564,7 +585,7 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
 
 
 def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_dur, board_image,
-            progress, tqdm, clock0, frame_guard_s) -> ImportResult:
+            progress, tqdm, clock0, frame_guard_s, clock: Clock) -> ImportResult:
     starts = np.array([p.t_start for p in periods])
 
     def period_of(t0: float, t1: float) -> int:
@@ -576,14 +597,13 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
     conns = {role: _connections(reader, t) for role, t in topics.items() if t}
     role_of = {c.id: (role, c) for role, cs in conns.items() if role != "angle" for c in cs}
     wanted = [c for role, cs in conns.items() if role != "angle" for c in cs]
-    clock = angles.clock
     acc: dict[int, _Acc] = {}
     done: dict[int, tuple[int, int]] = {}  # period -> (scans, frames) written
     geom: _ScanGeometry | None = None
     board: np.ndarray | None = None
     frame_shape: tuple | None = None
     sweep_rows: dict[str, list[tuple[float, np.ndarray]]] = {w.name: [] for w, _, _ in windows}
-    warn: list[str] = []
+    warn: list[str] = clock.notes  # notes about clocks come first
     n_moving = {"scan": 0, "stripe": 0}
     scan_t: list[float] = []
 
@@ -604,12 +624,14 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
             bar.update(1)
             role, c = role_of[conn.id]
             msg = reader.deserialize(raw, c.msgtype)
-            t = _stamp(msg, log_ns, clock)
+            t = clock.time(c.topic, msg, log_ns)
             log_t = log_ns * 1e-9
             for k in [k for k in acc if periods[k].t_end + _SLACK_S < log_t]:
                 flush(k)
             if role == "scan":
                 s = scan_from_msg(msg, t)
+                if clock.mode[c.topic] == "log":  # received after its last beam
+                    s = replace(s, t0=2 * s.t0 - s.t1, t1=s.t0)
                 if geom is None:
                     geom = _ScanGeometry(s, c.topic, bag, rigf)
                 geom.check(s, bag)
@@ -729,7 +751,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
                             **({"reference_diameter_mm": w.reference_diameter_mm}
                                if w.reference_diameter_mm is not None else {})}
                            for w, _, _ in windows],
-          "import": {"bag": str(bag), "topics": topics, "clock": angles.clock,
+          "import": {"bag": str(bag), "topics": topics, "clock": dict(clock.mode),
                      "tolerance_deg": tol, "min_duration_s": min_dur,
                      "encoder_resolution_deg": encoder_resolution_deg(angles.psi_deg),
                      "angle_rate_hz": 1.0 / median_period_s(angles.t_s),

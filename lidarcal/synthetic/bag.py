@@ -115,14 +115,16 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
               angle_hz: float = 50.0, scan_hz: float = 40.0, camera_hz: float = 2.0,
               angle_msg: str = "joint", extra_joint: bool = False,
               encoder_step_deg: float | None = None, hold_band_deg: float = 0.005,
-              sweeps: bool = True, rig_json: str | Path | None = None) -> dict:
+              sweeps: bool = True, scan_clock_offset_s: float = 0.0,
+              rig_json: str | Path | None = None) -> dict:
     """Record the dataset folder ``dataset`` as a bag at ``bag``; returns the RIG.json dict.
 
     ``storage``: ``"rosbag1"`` (a ``.bag`` file), ``"sqlite3"`` or ``"mcap"`` (a ROS 2 bag
     folder). ``images``: ``"raw"`` (Image), ``"png"`` or ``"jpeg"`` (CompressedImage on
     ``<topic>/compressed``). RIG.json (camera, boards, z-axis hint, LiDAR limits and the
     sweep windows in seconds from the bag's first message) is written to ``rig_json``
-    when given. Deterministic for a given ``seed``.
+    when given. ``scan_clock_offset_s`` stamps the scans on another clock (a LiDAR's own
+    time). Deterministic for a given ``seed``.
     """
     if storage not in ("rosbag1", "sqlite3", "mcap"):
         raise ValueError(f"storage must be rosbag1, sqlite3 or mcap, got {storage!r}")
@@ -254,7 +256,7 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
             kind = rng.integers(0, 5, n_beams)
             vals = np.array([0.0, np.inf, np.nan, rmax * 1.5, rmin * 0.5], dtype=np.float32)
             r = np.where(bad, vals[kind], r).astype(np.float32)
-        return LaserScan(header=_header(ts, t0, ros1, "laser"),
+        return LaserScan(header=_header(ts, t0 + scan_clock_offset_s, ros1, "laser"),
                          angle_min=math.radians(lid.angle_min_deg),
                          angle_max=math.radians(lid.angle_max_deg),
                          angle_increment=math.radians(lid.angle_step_deg),
