@@ -169,6 +169,12 @@ def test_errors_one_line(bags, tmp_path):
     (tmp_path / "junk.bag").write_bytes(b"not a bag")
     with pytest.raises(DatasetError, match="cannot be read as a ROS 1 or ROS 2 bag"):
         import_bag(tmp_path / "junk.bag", rig, tmp_path / "x")
+    ros1, ros1_rig = bags["ros1_raw"]
+    data = ros1.read_bytes()
+    (tmp_path / "cut.bag").write_bytes(data[: len(data) // 2])  # recording cut short
+    r = lidarcal("import", tmp_path / "cut.bag", "--rig", ros1_rig, "--out", tmp_path / "x")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "reindex" in r.stderr
+    assert not (tmp_path / "x").exists()
 
 
 def test_rig_file_checks(bags, tmp_path):
