@@ -112,8 +112,6 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 def _cmd_import(a: argparse.Namespace) -> int:
     from .io.bag import import_bag
 
-    if a.joint is not None and a.angle_unit != "rad":
-        raise ValueError("--angle-unit applies to a Float64 angle topic, not to --joint")
     res = import_bag(a.bag, a.rig, a.out, scan_topic=a.scan_topic, stripe_topic=a.stripe_topic,
                      board_topic=a.board_topic, angle_topic=a.angle_topic, joint=a.joint,
                      angle_unit=a.angle_unit, board_image=a.board_image,

@@ -45,6 +45,8 @@ def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
                       "sweeps": False},
         "lidar_clock": {"storage": "sqlite3", "images": "raw", "sweeps": False,
                         "scan_clock_offset_s": -3600.0},
+        "deg_angle": {"storage": "mcap", "images": "png", "sweeps": False,
+                      "angle_msg": "float64_deg"},
     }.items():
         bag = root / (f"{name}.bag" if kw["storage"] == "rosbag1" else name)
         write_bag(rig_folder, bag, rig_json=root / f"{name}.json", seed=1, **kw)
@@ -150,6 +152,14 @@ def test_scans_stamped_on_another_clock_use_receive_times(bags, rig_folder, tmp_
     clock = json.loads((tmp_path / "ds" / "dataset.json").read_text())["import"]["clock"]
     assert clock == {"/turntable/joint_states": "header", "/scan": "log",
                      "/camera/stripes/image_raw": "header", "/camera/board/image_raw": "header"}
+
+
+def test_float64_angle_in_degrees(bags, rig_folder, tmp_path):
+    bag, rig = bags["deg_angle"]
+    import_bag(bag, rig, tmp_path / "ds", angle_unit="deg")
+    assert_same_dataset(rig_folder, tmp_path / "ds")
+    res = import_bag(bag, rig, tmp_path / "wrong")  # read as radians: ~600 deg
+    assert "beyond a turn; if a Float64 angle is in degrees, pass --angle-unit deg" in res.warnings[0]
 
 
 def test_errors_one_line(bags, tmp_path):

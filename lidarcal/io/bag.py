@@ -247,7 +247,7 @@ def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path,
         if not math.isfinite(val):
             continue
         ts.append(clock.time(topic, msg, log_ns))
-        ps.append(math.degrees(val) if unit == "rad" else val)
+        ps.append(val if unit == "deg" and msgtype == FLOAT64 else math.degrees(val))
     if len(ts) < 3:
         raise DatasetError(bag, f"{topic}: {len(ts)} usable angle reading(s); need a turntable "
                                 "angle stream (--angle-topic, --joint)")
@@ -464,6 +464,9 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
 
     clock = Clock()
     angles = read_angles(reader, topics["angle"], joint, angle_unit, bag, clock)
+    if np.abs(angles.psi_deg).max() > 360.0:
+        clock.notes.append(f"{topics['angle']}: angles reach {np.abs(angles.psi_deg).max():.0f} deg, "
+                           "beyond a turn; if a Float64 angle is in degrees, pass --angle-unit deg")
     scan_conns = _connections(reader, topics["scan"])
     scan_count = sum(c.msgcount for c in scan_conns)
     span = max(reader.duration * 1e-9, 1e-9)

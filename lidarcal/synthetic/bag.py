@@ -123,11 +123,14 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
     folder). ``images``: ``"raw"`` (Image), ``"png"`` or ``"jpeg"`` (CompressedImage on
     ``<topic>/compressed``). RIG.json (camera, boards, z-axis hint, LiDAR limits and the
     sweep windows in seconds from the bag's first message) is written to ``rig_json``
-    when given. ``scan_clock_offset_s`` stamps the scans on another clock (a LiDAR's own
+    when given. ``angle_msg``: ``"joint"`` (JointState, radians), ``"float64"`` (radians)
+    or ``"float64_deg"`` (degrees). ``scan_clock_offset_s`` stamps the scans on another clock (a LiDAR's own
     time). Deterministic for a given ``seed``.
     """
     if storage not in ("rosbag1", "sqlite3", "mcap"):
         raise ValueError(f"storage must be rosbag1, sqlite3 or mcap, got {storage!r}")
+    if angle_msg not in ("joint", "float64", "float64_deg"):
+        raise ValueError(f"angle_msg must be joint, float64 or float64_deg, got {angle_msg!r}")
     if images not in ("raw", "png", "jpeg"):
         raise ValueError(f"images must be raw, png or jpeg, got {images!r}")
     from rosbags.typesys import Stores, get_typestore
@@ -291,7 +294,8 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
                         header=_header(ts, t_msg, ros1, "base"), name=names,
                         position=np.array(pos), velocity=np.zeros(0), effort=np.zeros(0))
                 else:
-                    msg = ts.types["std_msgs/msg/Float64"](data=rad)
+                    msg = ts.types["std_msgs/msg/Float64"](
+                        data=psi if angle_msg == "float64_deg" else rad)
                 role = "angle"
             elif kind in ("scan", "sweep_scan"):
                 if kind == "sweep_scan":
