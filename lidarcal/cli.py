@@ -53,6 +53,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="disc sizes in mm, used in turn by the trials (e.g. 100,140,200)")
     s.add_argument("--overwrite", action="store_true")
 
+    s = sub.add_parser("import", help="turn a ROS 1 / ROS 2 bag into a dataset folder")
+    s.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder (sqlite3, mcap)")
+    s.add_argument("--rig", type=Path, required=True, help="RIG.json (docs/ros-bags.md)")
+    s.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    s.add_argument("--scan-topic", help="sensor_msgs/LaserScan topic (default: the only one)")
+    s.add_argument("--stripe-topic", help="dark stripe frames, Image or CompressedImage "
+                                          "(default: the image topic named *stripe*)")
+    s.add_argument("--board-topic", help="lit board frames (default: the image topic named *board*)")
+    s.add_argument("--board-image", type=Path, help="the lit board image as a file instead")
+    s.add_argument("--angle-topic", help="turntable angle, JointState or Float64 "
+                                         "(default: the only one, or the one named *turntable*)")
+    s.add_argument("--joint", help="the turntable's name in a JointState with several joints")
+    s.add_argument("--angle-unit", choices=["rad", "deg"], default="rad",
+                   help="unit of a Float64 angle topic (JointState is always radians)")
+    s.add_argument("--tolerance-deg", type=float, default=None,
+                   help="a position holds the angle within this (default: from the encoder "
+                        "resolution and noise seen in the bag)")
+    s.add_argument("--min-duration-s", type=float, default=None,
+                   help="a position holds at least this long (default: 3 angle readings, 4 scans)")
+    s.add_argument("--frame-guard-s", type=float, default=0.0,
+                   help="use a frame only if its stamp is this far inside a position (exposure)")
+    s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--no-progress", action="store_true")
+
     s = sub.add_parser("intrinsics", help="calibrate camera intrinsics from chessboard photos")
     s.add_argument("images", type=Path, help="folder of chessboard images")
     s.add_argument("--pattern", type=_pattern, required=True, help="inner corners, e.g. 9x6")
@@ -123,6 +147,25 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     path = simulate(a.out, seed=a.seed, rig=rig, n_positions=a.positions,
                     with_sweeps=not a.no_sweeps, overwrite=a.overwrite)
     print(f"wrote dataset {path}")
+    return 0
+
+
+def _cmd_import(a: argparse.Namespace) -> int:
+    from .io.bag import import_bag
+
+    res = import_bag(a.bag, a.rig, a.out, scan_topic=a.scan_topic, stripe_topic=a.stripe_topic,
+                     board_topic=a.board_topic, angle_topic=a.angle_topic, joint=a.joint,
+                     angle_unit=a.angle_unit, board_image=a.board_image,
+                     tolerance_deg=a.tolerance_deg, min_duration_s=a.min_duration_s,
+                     frame_guard_s=a.frame_guard_s, overwrite=a.overwrite,
+                     progress=not a.no_progress and sys.stderr.isatty())
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    psi = [p.psi_deg for p in res.positions]
+    print(f"{len(psi)} positions, psi {min(psi):.4f}..{max(psi):.4f} deg (tolerance "
+          f"{res.tolerance_deg:.3g} deg, min duration {res.min_duration_s:.3g} s); "
+          f"{len(res.sweeps)} sweep(s)")
+    print(f"wrote dataset {res.out}")
     return 0
 
 
@@ -226,9 +269,16 @@ def _cmd_report(a: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"simulate": _cmd_simulate, "intrinsics": _cmd_intrinsics, "calibrate": _cmd_calibrate,
-            "pose": _cmd_pose, "measure": _cmd_measure, "report": _cmd_report,
-            "cloud": _cmd_cloud}
+COMMANDS = {
+    "simulate": _cmd_simulate,
+    "import": _cmd_import,
+    "intrinsics": _cmd_intrinsics,
+    "calibrate": _cmd_calibrate,
+    "pose": _cmd_pose,
+    "measure": _cmd_measure,
+    "cloud": _cmd_cloud,
+    "report": _cmd_report,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -39,6 +39,7 @@ TESTED_BY = {
     "measure": "test_readme_command_block",
     "report": "test_readme_command_block",
     "cloud": "test_cloud.py::test_cli_cloud_one_sweep_and_all",
+    "import": "test_bag.py::test_ros1_raw_images_cli",
 }
 
 _CODE = re.compile(r"```[^\n]*\n(.*?)```|`([^`\n]+)`", re.DOTALL)

@@ -1,0 +1,322 @@
+"""``lidarcal import``: ROS 1 / ROS 2 bags written by rosbags' own writers from a simulated rig.
+
+The bags carry scans and stripe frames during the moves too (wrong content: ranges 3 %
+long and shifted, frames shifted and blurred), invalid returns in every still scan (0,
+inf, NaN, beyond the range limits) and, for one bag, an encoder quantum. The import must
+give back the simulated folder: every position at its angle, each scan equal to the
+folder's (the per-beam median of the valid returns), each stripe image equal (lossless
+images) and the sweeps equal; any scan or frame from a move would break the equality.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lidarcal.dataset import DatasetError, load_dataset, read_scan, read_sweep
+from lidarcal.io.bag import import_bag
+from lidarcal.synthetic import get_rig, simulate
+from lidarcal.synthetic.bag import write_bag
+
+
+@pytest.fixture(scope="module")
+def rig_folder(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("bagsim") / "sim"
+    return simulate(out, seed=23, rig=get_rig("paper").with_(n_discs=2), n_positions=6,
+                    with_intrinsics=False)
+
+
+@pytest.fixture(scope="module")
+def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
+    """name -> (bag, RIG.json)."""
+    root = rig_folder.parent
+    out = {}
+    for name, kw in {
+        "ros1_raw": {"storage": "rosbag1", "images": "raw", "extra_joint": True},
+        "ros2_png": {"storage": "sqlite3", "images": "png", "angle_msg": "float64"},
+        "mcap_jpeg": {"storage": "mcap", "images": "jpeg", "encoder_step_deg": 0.001,
+                      "sweeps": False},
+        "lidar_clock": {"storage": "sqlite3", "images": "raw", "sweeps": False,
+                        "scan_clock_offset_s": -3600.0},
+        "deg_angle": {"storage": "mcap", "images": "png", "sweeps": False,
+                      "angle_msg": "float64_deg"},
+    }.items():
+        bag = root / (f"{name}.bag" if kw["storage"] == "rosbag1" else name)
+        write_bag(rig_folder, bag, rig_json=root / f"{name}.json", seed=1, **kw)
+        out[name] = (bag, root / f"{name}.json")
+    return out
+
+
+def lidarcal(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lidarcal", *map(str, args)],
+                          check=False, capture_output=True, text=True)
+
+
+def assert_same_dataset(a: Path, b: Path, exact_images: bool = True) -> None:
+    da, db = load_dataset(a), load_dataset(b)
+    assert [p.psi_deg for p in db.positions] == pytest.approx([p.psi_deg for p in da.positions],
+                                                               abs=1e-9)
+    for pa, pb in zip(da.positions, db.positions):
+        ang_a, ra = read_scan(pa.scan, da.lidar)
+        ang_b, rb = read_scan(pb.scan, db.lidar)
+        assert np.allclose(ang_a, ang_b, atol=1e-5)
+        assert np.array_equal(np.isnan(ra), np.isnan(rb)), pa.scan
+        assert np.allclose(ra[~np.isnan(ra)], rb[~np.isnan(rb)], atol=1e-9), pa.scan
+        ia = cv2.imread(str(pa.stripe_image), cv2.IMREAD_UNCHANGED)
+        ib = cv2.imread(str(pb.stripe_image), cv2.IMREAD_UNCHANGED)
+        assert ia.shape == ib.shape
+        if exact_images:
+            assert np.array_equal(ia, ib), pb.stripe_image
+        else:  # jpeg q95
+            assert np.abs(ia.astype(int) - ib).mean() < 1.0
+    assert (cv2.imread(str(db.board_image)).shape == cv2.imread(str(da.board_image)).shape)
+    assert da.lidar.angle_min_deg == pytest.approx(db.lidar.angle_min_deg, abs=1e-5)
+    assert da.lidar.n_beams == db.lidar.n_beams
+
+
+def test_ros1_raw_images_cli(bags, rig_folder, tmp_path):
+    bag, rig = bags["ros1_raw"]
+    out = tmp_path / "ds"
+    r = lidarcal("import", bag, "--rig", rig, "--out", out)  # two joints: --joint is needed
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert "has 2 joints (pan_dummy, turntable); name the turntable with --joint" in r.stderr
+    assert not out.exists()
+    r = lidarcal("import", bag, "--rig", rig, "--out", out, "--joint", "turntable")
+    assert r.returncode == 0, r.stderr
+    assert "6 positions" in r.stdout and "2 sweep(s)" in r.stdout
+    assert_same_dataset(rig_folder, out)
+    meta = json.loads((out / "dataset.json").read_text())
+    assert meta["import"]["scans_while_moving"] > 0 and meta["import"]["stripe_frames_while_moving"] > 0
+    assert [m["name"] for m in meta["measurements"]] == ["trial_01", "trial_02"]
+    ds, orig = load_dataset(out), load_dataset(rig_folder)
+    for ma, mb in zip(orig.measurements, ds.measurements):
+        sa, sb = read_sweep(ma.sweep, orig.lidar), read_sweep(mb.sweep, ds.lidar)
+        assert len(sa) == len(sb)
+        # psi interpolated at each scan's mid-time equals the angle the scan was taken at
+        assert np.allclose(sa.psi_deg, sb.psi_deg, atol=1e-6)
+        ra, rb = sa.range_mm.to_numpy(), sb.range_mm.to_numpy()
+        assert np.array_equal(np.isnan(ra), np.isnan(rb))
+        assert np.allclose(ra[~np.isnan(ra)], rb[~np.isnan(rb)])
+        assert mb.reference_diameter_mm == ma.reference_diameter_mm
+
+
+def test_ros2_png_import_then_calibrate_matches_the_folder(bags, rig_folder, tmp_path):
+    bag, rig = bags["ros2_png"]
+    res = import_bag(bag, rig, tmp_path / "ds")  # Float64 angle: bag log times for every topic
+    assert len(res.positions) == 6 and all(p.n_frames >= 2 and p.n_scans >= 30
+                                           for p in res.positions)
+    assert_same_dataset(rig_folder, tmp_path / "ds")
+    shutil.copy(rig_folder / "truth.json", tmp_path / "ds" / "truth.json")
+    cals = {}
+    for name, ds in (("bag", tmp_path / "ds"), ("folder", rig_folder)):
+        r = lidarcal("calibrate", ds, "--out", tmp_path / f"cal_{name}", "--method", "rigid",
+                     "--no-progress")
+        assert r.returncode == 0, r.stderr
+        cals[name] = json.loads((tmp_path / f"cal_{name}" / "calibration.json").read_text())
+    from lidarcal.evaluate import pose_errors
+    from lidarcal.geometry import Pose
+
+    truth = json.loads((rig_folder / "truth.json").read_text())
+    errs = {k: pose_errors({p["index"]: Pose.from_dict(p) for p in c["poses"]}, truth)
+            for k, c in cals.items()}
+    assert len(errs["bag"]) == 6
+    # identical inputs: identical true errors
+    for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):
+        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-6)
+    assert errs["bag"]["centre_mm"].mean() < 1.0  # 6 positions, 0.25 deg apart
+
+
+def test_mcap_jpeg_quantised_encoder(bags, rig_folder, tmp_path):
+    bag, rig = bags["mcap_jpeg"]
+    res = import_bag(bag, rig, tmp_path / "ds", stripe_topic="/camera/stripes/image_raw")
+    assert len(res.positions) == 6
+    # twice the smallest step seen: 1 count (flicker) or 2 (the smallest step of these moves)
+    counts = res.tolerance_deg / 0.001
+    assert 2 - 1e-6 <= counts <= 4 + 1e-6 and abs(counts - round(counts)) < 1e-6
+    assert_same_dataset(rig_folder, tmp_path / "ds", exact_images=False)
+    assert "measurements" in json.loads((tmp_path / "ds" / "dataset.json").read_text())
+
+
+def test_scans_stamped_on_another_clock_use_receive_times(bags, rig_folder, tmp_path):
+    bag, rig = bags["lidar_clock"]
+    res = import_bag(bag, rig, tmp_path / "ds")
+    assert "/scan: header stamps are -3.6e+03 s from the bag's receive times" in res.warnings[0]
+    assert_same_dataset(rig_folder, tmp_path / "ds")
+    clock = json.loads((tmp_path / "ds" / "dataset.json").read_text())["import"]["clock"]
+    assert clock == {"/turntable/joint_states": "header", "/scan": "log",
+                     "/camera/stripes/image_raw": "header", "/camera/board/image_raw": "header"}
+
+
+def test_float64_angle_in_degrees(bags, rig_folder, tmp_path):
+    bag, rig = bags["deg_angle"]
+    import_bag(bag, rig, tmp_path / "ds", angle_unit="deg")
+    assert_same_dataset(rig_folder, tmp_path / "ds")
+    res = import_bag(bag, rig, tmp_path / "wrong")  # read as radians: ~600 deg
+    assert "beyond a turn; if a Float64 angle is in degrees, pass --angle-unit deg" in res.warnings[0]
+
+
+def test_errors_one_line(bags, tmp_path):
+    bag, rig = bags["ros2_png"]
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "x", "--scan-topic", "/laser")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert "no topic /laser (--scan-topic); the bag has: /camera/board/image_raw/compressed" in r.stderr
+    assert "/scan (sensor_msgs/LaserScan)" in r.stderr
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "x", "--min-duration-s", "1000")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert "no stationary period on /turntable/angle: the angle spans" in r.stderr
+    assert not (tmp_path / "x").exists()
+    with pytest.raises(DatasetError, match="is sensor_msgs/msg/LaserScan, expected"):
+        import_bag(bag, rig, tmp_path / "x", stripe_topic="/scan")
+    with pytest.raises(DatasetError, match="no such bag"):
+        import_bag(tmp_path / "nope.bag", rig, tmp_path / "x")
+    (tmp_path / "junk.bag").write_bytes(b"not a bag")
+    with pytest.raises(DatasetError, match="cannot be read as a ROS 1 or ROS 2 bag"):
+        import_bag(tmp_path / "junk.bag", rig, tmp_path / "x")
+    ros1, ros1_rig = bags["ros1_raw"]
+    data = ros1.read_bytes()
+    (tmp_path / "cut.bag").write_bytes(data[: len(data) // 2])  # recording cut short
+    r = lidarcal("import", tmp_path / "cut.bag", "--rig", ros1_rig, "--out", tmp_path / "x")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "reindex" in r.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_rig_file_checks(bags, tmp_path):
+    bag, rig = bags["ros2_png"]
+    good = json.loads(rig.read_text())
+    bad = dict(good, lidar={**good["lidar"], "range_max_mm": 5000.0})
+    (tmp_path / "rig.json").write_text(json.dumps(bad))
+    with pytest.raises(DatasetError, match=r"lidar.range_max_mm is 5000 but the LaserScan messages "
+                                           r"on /scan give 3000"):
+        import_bag(bag, tmp_path / "rig.json", tmp_path / "x")
+    (tmp_path / "rig.json").write_text(json.dumps({k: v for k, v in good.items() if k != "camera"}))
+    with pytest.raises(DatasetError, match="needs 'camera'"):
+        import_bag(bag, tmp_path / "rig.json", tmp_path / "x")
+    bad = dict(good, measurements=[{"name": "m", "start_s": 5.0, "end_s": 1.0}])
+    (tmp_path / "rig.json").write_text(json.dumps(bad))
+    with pytest.raises(DatasetError, match="end_s must be after start_s"):
+        import_bag(bag, tmp_path / "rig.json", tmp_path / "x")
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "f").write_text("x")
+    with pytest.raises(DatasetError, match="exists and is not empty"):
+        import_bag(bag, rig, tmp_path / "taken")
+
+
+def test_board_image_file_and_overwrite(bags, rig_folder, tmp_path):
+    bag, rig = bags["ros2_png"]
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / "old").write_text("x")
+    board = tmp_path / "board.png"
+    shutil.copy(rig_folder / "board.png", board)
+    import_bag(bag, rig, out, board_image=board, overwrite=True)
+    assert not (out / "old").exists()
+    assert np.array_equal(cv2.imread(str(out / "board.png")), cv2.imread(str(board)))
+    assert not list(tmp_path.glob(".ds.*"))  # no temporary folder left behind
+
+
+@pytest.fixture(scope="module")
+def ros2_types():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.LATEST).types
+
+
+def _hdr(types):
+    return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                        frame_id="cam")
+
+
+@pytest.mark.parametrize("enc", ["mono8", "mono16", "bgr8", "rgb8", "rgba8"])
+def test_image_encodings(ros2_types, enc):
+    from lidarcal.io.bag import IMAGE, image_from_msg
+
+    rng = np.random.default_rng(0)
+    h, w = 5, 7
+    bgr = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    gray = bgr[:, :, 1].copy()
+    pad = 3  # row padding: step > width * bytes per pixel
+    if enc == "mono8":
+        rows, want = gray, gray
+    elif enc == "mono16":
+        rows, want = (gray.astype("<u2") * 256 + 100).view(np.uint8).reshape(h, 2 * w), gray
+    elif enc == "bgr8":
+        rows, want = bgr.reshape(h, 3 * w), bgr
+    elif enc == "rgb8":
+        rows, want = bgr[:, :, ::-1].reshape(h, 3 * w), bgr
+    else:
+        rgba = np.concatenate([bgr[:, :, ::-1], np.full((h, w, 1), 255, np.uint8)], axis=2)
+        rows, want = rgba.reshape(h, 4 * w), bgr
+    data = np.concatenate([rows, np.zeros((h, pad), np.uint8)], axis=1)
+    msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
+                            is_bigendian=0, step=data.shape[1], data=data.reshape(-1))
+    assert np.array_equal(image_from_msg(msg, IMAGE, "t"), want)
+    bad = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding="yuv422",
+                            is_bigendian=0, step=2 * w, data=np.zeros(2 * w * h, np.uint8))
+    with pytest.raises(DatasetError, match="'yuv422' is not supported"):
+        image_from_msg(bad, IMAGE, "t")
+
+
+def test_compressed_png16_and_bad_data(ros2_types):
+    from lidarcal.io.bag import COMPRESSED, image_from_msg
+
+    img16 = (np.arange(12, dtype=np.uint16).reshape(3, 4) * 5000)
+    _, buf = cv2.imencode(".png", img16)
+    msg = ros2_types[COMPRESSED](header=_hdr(ros2_types), format="mono16; png compressed",
+                                 data=buf.reshape(-1))
+    assert np.array_equal(image_from_msg(msg, COMPRESSED, "t"),
+                          np.clip((img16.astype(int) + 128) // 256, 0, 255))
+    junk = ros2_types[COMPRESSED](header=_hdr(ros2_types), format="png",
+                                  data=np.frombuffer(b"nope", np.uint8))
+    with pytest.raises(DatasetError, match="cannot be decoded"):
+        image_from_msg(junk, COMPRESSED, "t")
+
+
+def test_laserscan_units_invalid_returns_and_clockwise(ros2_types):
+    from lidarcal.io.bag import LASERSCAN, scan_from_msg
+
+    r = np.array([0.0, 1.0, np.inf, np.nan, 0.05, 31.0, 2.5], dtype=np.float32)
+    msg = ros2_types[LASERSCAN](header=_hdr(ros2_types), angle_min=np.radians(10.0),
+                                angle_max=np.radians(-20.0), angle_increment=np.radians(-5.0),
+                                time_increment=0.001, scan_time=0.025, range_min=0.1,
+                                range_max=30.0, ranges=r, intensities=np.zeros(0, np.float32))
+    s = scan_from_msg(msg, 7.0)
+    assert s.angle_min_deg == pytest.approx(-20.0) and s.angle_step_deg == pytest.approx(5.0)
+    want = np.array([2500.0, np.nan, np.nan, np.nan, np.nan, 1000.0, np.nan])  # reversed, mm
+    assert np.array_equal(np.isnan(s.range_mm), np.isnan(want))
+    assert np.allclose(s.range_mm[~np.isnan(want)], want[~np.isnan(want)])
+    assert (s.t0, s.t1, s.t_mid) == pytest.approx((7.0, 7.006, 7.003))
+
+
+def test_intrinsics_folder_is_copied(bags, tmp_path):
+    bag, rig = bags["ros2_png"]
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    img = np.random.default_rng(0).integers(0, 256, (40, 60), dtype=np.uint8)
+    cv2.imwrite(str(photos / "a.png"), img)
+    cv2.imwrite(str(photos / "b.jpg"), img)
+    (photos / "notes.txt").write_text("not a photo")
+    spec = {k: v for k, v in json.loads(rig.read_text()).items() if k != "camera"}
+    spec.update(intrinsics="photos", intrinsics_board={"inner_corners": [9, 6], "square_mm": 25.0})
+    (tmp_path / "rig.json").write_text(json.dumps(spec))
+    import_bag(bag, tmp_path / "rig.json", tmp_path / "ds")
+    ds = load_dataset(tmp_path / "ds")
+    assert ds.camera is None and [p.name for p in ds.intrinsics_images()] == ["a.png", "b.png"]
+    assert np.array_equal(cv2.imread(str(tmp_path / "ds" / "intrinsics" / "a.png"), 0), img)
+
+
+@pytest.mark.parametrize("k", [2, 3, 4, 5, 8, 27])
+def test_combine_frames_is_the_per_pixel_median(k):
+    from lidarcal.io.bag import combine_frames
+
+    rng = np.random.default_rng(k)
+    frames = [rng.integers(0, 256, (6, 9, 3), dtype=np.uint8) for _ in range(k)]
+    want = np.floor(np.median(np.stack(frames).astype(float), axis=0) + 0.5)
+    got = combine_frames(frames)
+    assert got.dtype == np.uint8 and np.array_equal(got, want)
