@@ -9,6 +9,7 @@ measurement rows).
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -173,6 +174,73 @@ def test_report_pdf_without_images(tmp_path):
     assert any("board detection" in n for n in inp.notes)
 
 
+def _with_edge_model(meas: dict, source: str, sigma_mm: float, references=()) -> dict:
+    """measurements.json of lidarcal.disc: per-trial sigma and reference flag, the edge model."""
+    rows = [{**m, "diameter_sigma_mm": sigma_mm, "reference": m["name"] in references,
+             "diameter_half_mm": m["diameter_mm"] + 0.6, "beam_spacing_mm": 2.0 + 0.05 * k,
+             "edge_offset_mm": 0.3, "mixed_share": 0.9} for k, m in enumerate(meas["measurements"])]
+    return {**meas, "measurements": rows, "warnings": ["a reference disc disagrees by 5 sigma"],
+            "edge_model": {"type": "offset_beam_spacing", "source": source, "echo": "mixed",
+                           "k": 0.0751, "k_sigma": 0.0029, "references": list(references)}}
+
+
+def _table2_block(src: str) -> str:
+    i = src.index("Section 3.2")
+    return src[i:src.index("\n)]", i)]
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_table2_sigma_column_and_reference_trials(tmp_path, seed):
+    """Sigma column, the reference trial marked and left out of the statistics, the edge model
+    stated, and the 2-sigma share counted against the true diameters."""
+    cal, truth, meas, *_ = _fake(seed, trials=6)
+    meas = _with_edge_model(meas, "reference", 1.0, references=("trial_01",))
+    df, s = table2(meas, truth)
+    d = np.array([m["diameter_mm"] for m in meas["measurements"]])
+    test = d[1:]  # trial_01 is the reference
+    assert list(df["reference"]) == [True] + [False] * 5
+    assert s["tests"] == 5 and s["references"] == 1
+    assert s["mean_abs_error_mm"] == pytest.approx(np.abs(test - 140).mean())
+    assert s["mean_diameter_mm"] == pytest.approx(test.mean())
+    inside = int(np.sum(np.abs(test - 140.0) <= 2.0))
+    assert (s["within_2sigma"], s["within_2sigma_of"]) == (inside, 5)
+
+    src = build_report_source(ReportInputs(_fake_dataset(tmp_path), cal, meas, truth), tmp_path,
+                              figures=False)
+    block = _table2_block(src)
+    assert "[σ]" in block
+    for k, m in enumerate(meas["measurements"]):
+        line = next(ln for ln in block.splitlines() if f"trial_\u200b{k + 1:02d}" in ln)
+        cells = re.findall(r"\[([^\[\]]*)\]", line)
+        assert cells[5:8] == [fnum(m["diameter_mm"], 2), fnum(1.0, 2),
+                              (f"({fnum(d[k] - 140, 2, sign=True)})" if k == 0
+                               else fnum(d[k] - 140, 2, sign=True))]
+        assert ("(ref.)" in line) == (k == 0)
+    assert fnum(np.abs(test - 140).mean(), 2) in block
+    text = src[src.index("Section 3.2"):]
+    assert "fitted on the reference disc #\"trial_\u200b01\"" in text
+    assert "k = 0.075 ± 0.003 beam spacings" in text
+    assert f"within 2 σ for {inside} of 5 test trials" in text
+    assert "a reference disc disagrees by 5 sigma" in src[:src.index("Provenance")]  # summary
+
+
+def test_table2_prior_and_old_measurements(tmp_path):
+    cal, truth, meas, *_ = _fake(8, trials=4)
+    ds = _fake_dataset(tmp_path)
+    prior = _with_edge_model(meas, "prior", 0.5)
+    text = build_report_source(ReportInputs(ds, cal, prior, truth), tmp_path, figures=False)
+    text = text[text.index("Section 3.2"):]
+    assert "the prior, no reference disc" in text and "(ref.)" not in text
+    d = np.array([m["diameter_mm"] for m in meas["measurements"]])
+    assert f"within 2 σ for {int(np.sum(np.abs(d - 140) <= 1.0))} of 4 test trials" in text
+    # a measurements.json from before the edge model: no sigma column, said so, still a table
+    old = build_report_source(ReportInputs(ds, cal, meas, truth), tmp_path, figures=False)
+    block = _table2_block(old)
+    assert "[σ]" not in block and "within 2 σ" not in old
+    assert "records none" in old[old.index("Section 3.2"):]
+    assert fnum(np.abs(d - 140).mean(), 2) in block
+
+
 # ---------------------------------------------------------------- end to end on a simulated rig
 
 
@@ -195,11 +263,22 @@ def small_dataset(tmp_path_factory):
     return path
 
 
-def test_report_end_to_end(small_dataset, tmp_path):
+@pytest.fixture(scope="module")
+def calibrated(small_dataset, tmp_path_factory) -> Path:
+    """The folder holding ``lidarcal calibrate``'s calibration.json of :func:`small_dataset`."""
+    from lidarcal.cli import main
+
+    cal_dir = tmp_path_factory.mktemp("cal")
+    assert main(["calibrate", str(small_dataset), "--out", str(cal_dir), "--no-progress"]) == 0
+    return cal_dir
+
+
+def test_report_end_to_end(small_dataset, calibrated, tmp_path):
     from lidarcal.cli import main
 
     cal_dir = tmp_path / "cal"
-    assert main(["calibrate", str(small_dataset), "--out", str(cal_dir), "--no-progress"]) == 0
+    cal_dir.mkdir()
+    (cal_dir / "calibration.json").write_bytes((calibrated / "calibration.json").read_bytes())
     ds_json = json.loads((small_dataset / "dataset.json").read_text())
     meas = None
     if ds_json.get("measurements"):
@@ -222,6 +301,48 @@ def test_report_end_to_end(small_dataset, tmp_path):
     assert "not drawn" not in src, [ln for ln in src.splitlines() if "not drawn" in ln]
     for name in ("corners", "stripes", "scan", "frames", "trajectories", "residuals"):
         assert list(keep.glob(f"fig_*_{name}.png")), name
+
+
+_SPY = """
+import os, sys
+from pathlib import Path
+import lidarcal.scene3d as scene3d
+from lidarcal.report import write_report
+
+calls = []
+real = scene3d.rig_figure
+def spy(*a, **kw):
+    calls.append(kw)
+    return real(*a, **kw)
+scene3d.rig_figure = spy
+ds, cal, out, keep = sys.argv[1:5]
+write_report(ds, out, calibration=cal, command="test", keep_source=keep)
+print("rig_figure calls", len(calls), sorted(calls[0]) if calls else "")
+"""
+
+
+def test_report_3d_figure_from_pyvista_without_display(small_dataset, calibrated, tmp_path):
+    """The frames figure is the pyvista rig scene, rendered off screen with no display."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["MPLBACKEND"] = "Agg"
+    keep = tmp_path / "src"
+    res = subprocess.run([sys.executable, "-c", _SPY, str(small_dataset),
+                          str(calibrated / "calibration.json"), str(tmp_path / "r.pdf"), str(keep)],
+                         capture_output=True, text=True, env=env, timeout=600, check=False)
+    assert res.returncode == 0, res.stderr
+    assert "rig_figure calls 1 ['K', 'aperture_deg', 'image_size']" in res.stdout, res.stdout
+    assert (tmp_path / "r.pdf").read_bytes()[:5] == PDF_MAGIC
+    src = (keep / "report.typ").read_text()
+    assert "not drawn" not in src, [ln for ln in src.splitlines() if "not drawn" in ln]
+    png = list(keep.glob("fig_*_frames.png"))
+    assert len(png) == 1 and f'image("{png[0].name}"' in src
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(png[0])[..., :3]
+    # the rendered scene, not a blank window: the purple turntable axis and the orange fans show
+    purple = (np.abs(img - np.array([0.5, 0.0, 0.5])).max(axis=-1) < 0.15).mean()
+    fan = ((img[..., 0] > 0.9) & (img[..., 1] > 0.7) & (img[..., 1] < 0.95) & (img[..., 2] < 0.85)).mean()
+    assert purple > 1e-4 and fan > 0.01, (purple, fan)
 
 
 # ---------------------------------------------------------------- workbook

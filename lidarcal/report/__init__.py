@@ -29,6 +29,7 @@ from .tables import (
     axes_table,
     comparison,
     comparisons,
+    edge_model_text,
     model_poses,
     table1,
     table2,
@@ -37,6 +38,6 @@ from .tables import (
 
 __all__ = ["COMPARISON_COLUMNS", "DECIMALS", "FIG_DPI", "PAPER_REFERENCE_MM", "PAPER_TABLE1",
            "PAPER_TABLE2", "PAPER_TABLE2_MEAN", "ReportInputs", "axes_table", "build_report_source",
-           "comparison", "comparisons", "compile_typst", "esc", "fnum", "gather_inputs",
+           "comparison", "comparisons", "compile_typst", "edge_model_text", "esc", "fnum", "gather_inputs",
            "model_poses", "table1", "table2", "typst_table", "uncertainty_summary", "vec",
            "write_report"]

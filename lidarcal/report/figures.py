@@ -190,8 +190,27 @@ def _plot_scan(det: _Detail):
     return plot_scan_split(pts, mask(i1), mask(i2), lines, E, rej)
 
 
+def _trimmed(fig, margin: int = 12):
+    """A rendered scene (a Figure holding one image, :mod:`lidarcal.scene3d`) cropped to its
+    content: the white border of the render window would shrink the scene on the page."""
+    from matplotlib.figure import Figure
+
+    img = np.asarray(fig.axes[0].images[0].get_array())
+    ink = np.any(img[..., :3] < (250 if img.dtype == np.uint8 else 250 / 255), axis=-1)
+    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
+    if not len(rows):
+        return fig
+    h, w = ink.shape
+    img = img[max(rows[0] - margin, 0):min(rows[-1] + margin + 1, h),
+              max(cols[0] - margin, 0):min(cols[-1] + margin + 1, w)]
+    out = Figure(figsize=(6.4, 6.4 * img.shape[0] / img.shape[1]))
+    ax = out.add_axes((0, 0, 1, 1))
+    ax.imshow(img)
+    ax.set_axis_off()
+    return out
+
+
 def _plot_frames(inp: ReportInputs, det: _Detail):
-    from ..plots import plot_frames_3d
     from ..scan import scan_points
 
     samples = [Pose.from_dict(r) for r in inp.cal.get("samples", [])]
@@ -214,7 +233,13 @@ def _plot_frames(inp: ReportInputs, det: _Detail):
         scan = det.solved.pose.apply(pts)
     ax = inp.cal.get("axis")
     axis = (ax["point_mm"], ax["direction"]) if ax else None
-    return plot_frames_3d(pick, corners, scan, axis)
+    cam = inp.cal["camera"]
+    lid = inp.dataset.lidar
+    from ..scene3d import rig_figure  # the pyvista scene, rendered off screen
+
+    return _trimmed(rig_figure(pick, corners, scan, axis, K=np.asarray(cam["K"], float),
+                               image_size=tuple(cam.get("image_size") or inp.dataset.image_size),
+                               aperture_deg=(lid.angle_min_deg, lid.angle_max_deg)))
 
 
 def _plot_traj(inp: ReportInputs):
@@ -237,19 +262,51 @@ def _plot_traj(inp: ReportInputs):
                              truth=truth)
 
 
-def _plot_disc(inp: ReportInputs):
+@dataclass
+class _DiscTrial:
+    """The trial shown in section 3.2: its dataset entry, its measurements.json row and the
+    disc re-measured from the sweep (diameter replaced by the stored, edge-corrected one)."""
+
+    spec: object  # dataset Measurement
+    row: dict
+    measurement: object  # measure.DiscMeasurement
+    sweep: object  # the sweep DataFrame
+
+
+def _disc_trial(inp: ReportInputs) -> _DiscTrial:
+    """The first trial that is not a reference (a reference's diameter is fitted), re-measured."""
+    from dataclasses import replace
+
     from ..api import load_calibration
     from ..dataset import read_sweep
     from ..measure import measure_disc
-    from ..plots import plot_disc_cloud
 
     ds = inp.dataset
-    m = ds.measurements[0]
+    rows = {r.get("name"): r for r in (inp.meas or {}).get("measurements", [])}
+    specs = [m for m in ds.measurements if not rows.get(m.name, {}).get("reference")]
+    if not specs:
+        specs = list(ds.measurements)
+    if not specs:
+        raise ValueError("dataset.json lists no measurement sweeps")
+    m = specs[0]
     cal = load_calibration(inp.calibration_path)
     sweep = read_sweep(m.sweep, ds.lidar)
     r = measure_disc(sweep, cal, ds.lidar)
+    row = rows.get(m.name, {})
+    if row.get("diameter_mm") is not None:
+        r = replace(r, diameter_mm=float(row["diameter_mm"]))
+    return _DiscTrial(m, row, r, sweep)
+
+
+def _plot_disc(inp: ReportInputs, trial: _DiscTrial):
+    from ..plots import plot_disc_cloud
+
+    m, r, sweep = trial.spec, trial.measurement, trial.sweep
     pts = getattr(r, "cloud", None)
     if pts is None or np.ndim(pts) != 2:
+        from ..api import load_calibration
+
+        cal = load_calibration(inp.calibration_path)
         ok = np.isfinite(sweep["range_mm"].to_numpy())
         pts = cal.points(sweep["psi_deg"].to_numpy()[ok], sweep["angle_deg"].to_numpy()[ok],
                          sweep["range_mm"].to_numpy()[ok])

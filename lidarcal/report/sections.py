@@ -12,6 +12,7 @@ import pandas as pd
 from .. import __version__
 from .figures import (
     _Detail,
+    _disc_trial,
     _Figures,
     _plot_disc,
     _plot_frames,
@@ -28,6 +29,7 @@ from .tables import (
     PAPER_TABLE2,
     PAPER_TABLE2_MEAN,
     axes_table,
+    edge_model_text,
     uncertainty_summary,
 )
 
@@ -86,15 +88,26 @@ def _summary_section(inp: ReportInputs, t1: pd.DataFrame, t2sum: dict, cmp: dict
     if unc:
         key.append(("Uncertainty (joint fit, 1-sigma)", unc))
     if t2sum.get("trials"):
-        s = (f"{t2sum['trials']} trials, mean diameter {fnum(t2sum.get('mean_diameter_mm'), 2)} mm")
+        s = f"{t2sum['trials']} trials"
+        if t2sum.get("references"):
+            s += f" ({t2sum['references']} reference, left out of the means)"
+        s += f", mean diameter {fnum(t2sum.get('mean_diameter_mm'), 2)} mm"
+        if "mean_sigma_mm" in t2sum:
+            s += f" (σ {fnum(t2sum['mean_sigma_mm'], 2)} mm)"
         if "mean_abs_error_mm" in t2sum:
             s += (f", mean error {fnum(t2sum['mean_error_mm'], 2, sign=True)} mm, mean |error| "
                   f"{fnum(t2sum['mean_abs_error_mm'], 2)} mm")
+        if "within_2sigma" in t2sum:
+            s += f", within 2 σ: {t2sum['within_2sigma']} of {t2sum['within_2sigma_of']}"
+        em = (inp.meas or {}).get("edge_model")
+        if isinstance(em, dict):
+            s += (f"; edge model from {esc(em.get('source', '?'))}, k {fnum(em.get('k'), 3)} "
+                  f"± {fnum(em.get('k_sigma'), 3)}")
         s += " (paper: 138.49 mm, mean |error| 2.77 mm)"
         key.append(("Disc diameters (Table 2)", s))
     out.append("== Key results\n#notebox[#kv(" + ", ".join(f"([{k}], [{v}])" for k, v in key)
                + ")]\n")
-    warns = list(cal.get("warnings", [])) + list(inp.notes)
+    warns = list(cal.get("warnings", [])) + _measurement_warnings(inp.meas) + list(inp.notes)
     if cal.get("skipped"):
         warns.append(f"{len(cal['skipped'])} position(s) skipped (see 'Skipped positions')")
     out.append("== Warnings\n")
@@ -219,7 +232,7 @@ def _section1(inp: ReportInputs, det: _Detail, fig: _Figures) -> str:
             det.board_image, [b.corners_px for b in det.boards],
             [getattr(b, "outline_px", None) for b in det.boards]),
             "board.png with the detected inner corners of both chessboards (first corner ringed) "
-            "and the mask outlines used for the stripes.", width="85%"))
+            "and the mask outlines used for the stripes.", width="75%"))
     # per-position fit quality, from the samples table
     out.append("== 1.3-1.5 Stripes, scan lines and single-shot poses\n")
     sol = det.solved
@@ -247,14 +260,17 @@ def _section1(inp: ReportInputs, det: _Detail, fig: _Figures) -> str:
                 det.stripe_image, list(cl.centres_px),
                 [getattr(b, "outline_px", None) for b in det.boards]),
                 f"Stripe image of position {pos.index} (contrast stretched) with the sub-pixel "
-                "stripe centres of each board.", width="85%"))
+                "stripe centres of each board.", width="75%"))
         out.append(fig("scan", lambda: _plot_scan(det),
                        f"Scan of position {pos.index} in the LiDAR frame: the two board segments, "
                        "the returns rejected from them, the constrained lines L1, L2 and their "
                        "vertex E.", width="100%"))
         out.append(fig("frames", lambda: _plot_frames(inp, det),
-                       "Camera frame, LiDAR frames (five positions), the two boards and the scan of "
-                       "the position shown mapped by its single-shot pose.", width="70%"))
+                       "The rig in 3D (pyvista, camera frame): the camera's frustum, the LiDAR frame "
+                       "at five positions (x red, y green, z blue), the turntable axis (purple), the "
+                       "two boards, the laser fans at the first and last of them (orange) and the "
+                       "scan of the position shown mapped by its single-shot pose (grey).",
+                       width="75%"))
     out.append(_samples_table(cal))
     return "\n".join(out)
 
@@ -350,6 +366,14 @@ def _section2(inp: ReportInputs, fig: _Figures, t1: pd.DataFrame, cmp: dict) -> 
     return "\n".join(out)
 
 
+def _measurement_warnings(meas: dict | None) -> list[str]:
+    """measurements.json's warnings: the file's list and any per-trial lists."""
+    out = [f"measurements.json: {w}" for w in (meas or {}).get("warnings", []) or []]
+    for r in (meas or {}).get("measurements", []):
+        out += [f"measurements.json, {r.get('name', '?')}: {w}" for w in r.get("warnings", []) or []]
+    return out
+
+
 def _section3(inp: ReportInputs, fig: _Figures, t2: pd.DataFrame, t2sum: dict) -> str:
     from .. import plots
 
@@ -359,14 +383,15 @@ def _section3(inp: ReportInputs, fig: _Figures, t2: pd.DataFrame, t2sum: dict) -
                    "given (`lidarcal measure`).\n")
         return "\n".join(out)
     has_truth = t2["truth_diameter_mm"].notna().any()
-    hdr = ["trial", "diameter", "|error|", "name", "reference", "diameter", "error"]
-    hrow = ["table.cell(align: center, colspan: 3)[paper (mm)]", "table.cell(align: center, colspan: 4)[this dataset (mm)]"]
+    has_sigma = t2["diameter_sigma_mm"].notna().any()
+    here = ["name", "reference", "diameter"] + (["σ"] if has_sigma else []) + ["error"]
     if has_truth:
-        hdr.append("true diam.")
-        hrow[-1] = "table.cell(align: center, colspan: 5)[this dataset (mm)]"
+        here.append("true diam.")
     if t2["naive_diameter_mm"].notna().any():
-        hdr.append("naive diam.")
-        hrow[-1] = f"table.cell(align: center, colspan: {len(hdr) - 3})[this dataset (mm)]"
+        here.append("naive diam.")
+    hdr = ["trial", "diameter", "|error|"] + here
+    hrow = ["table.cell(align: center, colspan: 3)[paper (mm)]",
+            f"table.cell(align: center, colspan: {len(here)})[this dataset (mm)]"]
     n = max(len(PAPER_TABLE2), len(t2))
     rows = []
     for i in range(n):
@@ -374,35 +399,73 @@ def _section3(inp: ReportInputs, fig: _Figures, t2: pd.DataFrame, t2sum: dict) -
                if i < len(PAPER_TABLE2) else ["", "", ""])
         if i < len(t2):
             r = t2.iloc[i]
-            row += [esc(r["name"]), fnum(r["reference_diameter_mm"], 2),
-                    fnum(r["diameter_mm"], DECIMALS["diameter_mm"]),
-                    fnum(r["error_mm"], DECIMALS["error_mm"], sign=True)]
+            err = fnum(r["error_mm"], DECIMALS["error_mm"], sign=True)
+            row += [esc(r["name"]) + (" _(ref.)_" if r["reference"] else ""),
+                    fnum(r["reference_diameter_mm"], 2),
+                    fnum(r["diameter_mm"], DECIMALS["diameter_mm"])]
+            if has_sigma:
+                row.append(fnum(r["diameter_sigma_mm"], 2))
+            row.append(f"({err})" if r["reference"] and err != "--" else err)
             if has_truth:
                 row.append(fnum(r["truth_diameter_mm"], 2))
             if "naive diam." in hdr:
                 row.append(fnum(r["naive_diameter_mm"], 2))
         rows.append(row + [""] * (len(hdr) - len(row)))
-    mrow = ["mean", fnum(PAPER_TABLE2_MEAN[0], 2), fnum(PAPER_TABLE2_MEAN[1], 2), "",
-            "", fnum(t2sum.get("mean_diameter_mm"), 2), fnum(t2sum.get("mean_error_mm"), 2, True)]
-    arow = ["", "", "", "mean |error|", "", "", fnum(t2sum.get("mean_abs_error_mm"), 2)]
+    mean_here = ["", "", fnum(t2sum.get("mean_diameter_mm"), 2)]
+    abs_here = ["mean |error|", "", ""]
+    if has_sigma:
+        mean_here.append(fnum(t2sum.get("mean_sigma_mm"), 2))
+        abs_here.append("")
+    mean_here.append(fnum(t2sum.get("mean_error_mm"), 2, True))
+    abs_here.append(fnum(t2sum.get("mean_abs_error_mm"), 2))
+    mrow = ["mean", fnum(PAPER_TABLE2_MEAN[0], 2), fnum(PAPER_TABLE2_MEAN[1], 2), *mean_here]
+    arow = ["", "", "", *abs_here]
     rows += [mrow + [""] * (len(hdr) - len(mrow)), arow + [""] * (len(hdr) - len(arow))]
     out.append(typst_table(hdr, rows, size="8.5pt", header_rows=hrow, hlines=(n,)))
     notes = [(f"Reference diameter {fnum(PAPER_REFERENCE_MM, 1)} mm in the paper; error = measured "
              "- reference (the paper lists |error|).")]
-    if "mean_abs_error_truth_mm" in t2sum:
-        notes.append(f"Mean |measured - true diameter|: {fnum(t2sum['mean_abs_error_truth_mm'], 2)} mm.")
-    if "naive_mean_abs_error_mm" in t2sum:
-        notes.append("'naive diam.' is the circle through the outermost hits only (the biased-small "
-                     f"estimate): mean |error| {fnum(t2sum['naive_mean_abs_error_mm'], 2)} mm.")
+    if has_sigma:
+        notes.append("σ: the 1-sigma of the diameter, the rim fit's and the edge model's "
+                     "uncertainty together.")
+    if t2sum.get("references"):
+        names = ", ".join(esc(x) for x in t2.loc[t2["reference"], "name"])
+        notes.append(f"_(ref.)_: {names} calibrated the edge model, so its error (in parentheses) "
+                     "is fitted, not measured; the means leave it out.")
     out.append(" ".join(notes) + "\n")
+    em = edge_model_text(inp.meas)
+    if em:
+        out.append(f"*Edge model:* {em}. Diameter = half-share diameter - 2 k x beam "
+                   "spacing (lidarcal.disc).\n")
+    else:
+        out.append("*Edge model:* measurements.json records none (written by an older lidarcal): "
+                   "the diameters carry no edge correction and no sigma.\n")
+    stats = []
+    if "within_2sigma" in t2sum:
+        k, m = t2sum["within_2sigma"], t2sum["within_2sigma_of"]
+        against = "the true diameters (truth.json)" if has_truth else "the reference diameters"
+        stats.append(f"The error against {against} lies within 2 σ for {k} of {m} test trials "
+                     f"({fnum(100.0 * k / m, 0)} %).")
+    if "mean_abs_error_truth_mm" in t2sum:
+        stats.append(f"Mean |measured - true diameter|: {fnum(t2sum['mean_abs_error_truth_mm'], 2)} mm.")
+    if "naive_mean_abs_error_mm" in t2sum:
+        stats.append("'naive diam.' is the circle through the outermost hits only (the biased-small "
+                     f"estimate): mean |error| {fnum(t2sum['naive_mean_abs_error_mm'], 2)} mm.")
+    if stats:
+        out.append(" ".join(stats) + "\n")
+    warns = _measurement_warnings(inp.meas)
+    if warns:
+        out.append("#warnbox[" + "\n".join(f"- {esc(w)}" for w in warns) + "]\n")
     if len(t2):
         out.append(fig("table2", lambda: plots.plot_table2(
             t2["diameter_mm"].to_numpy(), t2["reference_diameter_mm"].to_numpy(),
             list(t2["name"]), np.array([r[1] for r in PAPER_TABLE2])),
-            "Measured minus reference diameter per trial, beside the paper's.", width="75%"))
-        out.append(fig("disc", lambda: _plot_disc(inp),
-                       "The first trial's point cloud (eq. 28): disc points, rejected rim returns "
-                       "and the fitted circle; right: the disc plane face on.", width="100%"))
+            "Measured minus reference diameter per trial, beside the paper's."
+            + (f" {', '.join(t2.loc[t2['reference'], 'name'])}: reference (its error is fitted)."
+               if t2sum.get("references") else ""), width="75%"))
+        out.append(fig("disc", lambda: _plot_disc(inp, _disc_trial(inp)),
+                       "A test trial's point cloud (eq. 28): disc points, rejected rim returns "
+                       "and the circle of the measured (edge-corrected) diameter; right: the disc "
+                       "plane face on.", width="100%"))
     return "\n".join(out)
 
 

@@ -109,47 +109,108 @@ def table1(cal: dict, truth: dict | None = None) -> pd.DataFrame:
 def table2(meas: dict | None, truth: dict | None = None) -> tuple[pd.DataFrame, dict]:
     """Table 2 reproduced from measurements.json: per trial and the summary.
 
-    Summary keys: ``trials``, ``mean_diameter_mm``, ``mean_error_mm`` (signed),
-    ``mean_abs_error_mm`` (the paper's "error" column is |error|), and
-    ``mean_abs_error_truth_mm`` when truth.json gives the true diameters.
+    The columns come from :func:`lidarcal.disc.table2_columns` (name, diameter,
+    its 1-sigma ``diameter_sigma_mm`` including the edge model, reference
+    diameter, error, ``reference``: the trial calibrated the edge model), plus
+    the naive diameter, the point count and the true diameter (truth.json).
+    Older files without ``diameter_sigma_mm`` / ``reference`` give NaN / False.
+
+    Summary keys, over the test trials only (a reference's error is fitted, not
+    measured): ``trials``, ``tests``, ``references``, ``mean_diameter_mm``,
+    ``mean_error_mm`` (signed), ``mean_abs_error_mm`` (the paper's "error"
+    column is |error|), ``mean_abs_error_truth_mm`` when truth.json gives the
+    true diameters, ``naive_mean_abs_error_mm``, ``mean_sigma_mm``, and
+    ``within_2sigma`` / ``within_2sigma_of``: how many trials have
+    |diameter - true| <= 2 sigma (true: truth.json, else the reference diameter).
     """
-    rows = []
+    from ..disc import table2_columns
+
     tdiam = {}
     if truth is not None:
         tdiam = {m.get("name"): m.get("diameter_mm") for m in truth.get("measurements", [])}
-    for m in (meas or {}).get("measurements", []):
-        d = float(m["diameter_mm"])
-        ref = m.get("reference_diameter_mm")
-        err = m.get("error_mm")
-        if err is None and ref is not None:
-            err = d - float(ref)
-        rows.append({"name": m.get("name", f"trial {len(rows) + 1}"), "diameter_mm": d,
-                     "reference_diameter_mm": np.nan if ref is None else float(ref),
-                     "error_mm": np.nan if err is None else float(err),
-                     "naive_diameter_mm": float(m["naive_diameter_mm"])
-                     if m.get("naive_diameter_mm") is not None else np.nan,
+    trials = [{**m, "name": m.get("name", f"trial {k + 1}")}
+              for k, m in enumerate((meas or {}).get("measurements", []))]
+    cols = table2_columns({"measurements": trials})
+    num = lambda v: np.nan if v is None else float(v)
+    rows = []
+    for k, m in enumerate(trials):
+        d = float(cols["diameter_mm"][k])
+        ref = num(cols["reference_diameter_mm"][k])
+        err = num(cols["error_mm"][k])
+        if np.isnan(err) and not np.isnan(ref):
+            err = d - ref
+        rows.append({"name": cols["name"][k], "diameter_mm": d,
+                     "diameter_sigma_mm": num(cols["diameter_sigma_mm"][k]),
+                     "reference_diameter_mm": ref, "error_mm": err,
+                     "reference": bool(cols["reference"][k]),
+                     "naive_diameter_mm": num(m.get("naive_diameter_mm")),
                      "points": m.get("points"),
-                     "truth_diameter_mm": float(tdiam[m.get("name")])
-                     if tdiam.get(m.get("name")) is not None else np.nan})
-    df = pd.DataFrame(rows, columns=["name", "diameter_mm", "reference_diameter_mm", "error_mm",
+                     "truth_diameter_mm": num(tdiam.get(m["name"]))})
+    df = pd.DataFrame(rows, columns=["name", "diameter_mm", "diameter_sigma_mm",
+                                     "reference_diameter_mm", "error_mm", "reference",
                                      "naive_diameter_mm", "points", "truth_diameter_mm"])
-    summ: dict = {"trials": len(df)}
-    if len(df):
-        summ["mean_diameter_mm"] = float(df["diameter_mm"].mean())
-        e = df["error_mm"].dropna()
+    df["reference"] = df["reference"].astype(bool)
+    test = df[~df["reference"]]
+    summ: dict = {"trials": len(df), "tests": len(test), "references": int(df["reference"].sum())}
+    if len(test):
+        summ["mean_diameter_mm"] = float(test["diameter_mm"].mean())
+        e = test["error_mm"].dropna()
         if len(e):
             summ["mean_error_mm"] = float(e.mean())
             summ["mean_abs_error_mm"] = float(e.abs().mean())
-        t = df.dropna(subset=["truth_diameter_mm"])
+        t = test.dropna(subset=["truth_diameter_mm"])
         if len(t):
             summ["mean_abs_error_truth_mm"] = float((t["diameter_mm"] - t["truth_diameter_mm"])
                                                    .abs().mean())
-        nv = df["naive_diameter_mm"].dropna()
-        if len(nv) and df["reference_diameter_mm"].notna().all():
+        nv = test.dropna(subset=["naive_diameter_mm"])
+        if len(nv) and test["reference_diameter_mm"].notna().all():
             summ["naive_mean_abs_error_mm"] = float(
-                (df.loc[nv.index, "naive_diameter_mm"] - df.loc[nv.index, "reference_diameter_mm"])
-                .abs().mean())
+                (nv["naive_diameter_mm"] - nv["reference_diameter_mm"]).abs().mean())
+        sig = test["diameter_sigma_mm"].dropna()
+        if len(sig):
+            summ["mean_sigma_mm"] = float(sig.mean())
+        true = test["truth_diameter_mm"].fillna(test["reference_diameter_mm"])
+        ok = true.notna() & test["diameter_sigma_mm"].notna()
+        if ok.any():
+            dev = (test["diameter_mm"] - true)[ok].abs()
+            summ["within_2sigma"] = int((dev <= 2.0 * test["diameter_sigma_mm"][ok]).sum())
+            summ["within_2sigma_of"] = int(ok.sum())
     return df, summ
+
+
+def edge_model_text(meas: dict | None) -> str:
+    """The edge model of measurements.json in words, as typst markup (``lidarcal.disc``: the
+    detected rim lies ``k`` beam spacings outside the true rim, ``D = D_half - 2 k u``); ""
+    for older files without ``edge_model``."""
+    from .markup import esc
+
+    em = (meas or {}).get("edge_model")
+    if not isinstance(em, dict):
+        return ""
+    k, ks = em.get("k"), em.get("k_sigma")
+    src = em.get("source", "?")
+    if src == "reference":
+        refs = [str(x) for x in em.get("references") or []]
+        s = "s" if len(refs) != 1 else ""
+        out = (f"fitted on the reference disc{s} {', '.join(esc(r) for r in refs) or '?'} "
+               f"(known diameter{s})")
+    elif src == "prior":
+        out = f"the prior, no reference disc (rim echo type {esc(em.get('echo', '?'))})"
+    else:
+        out = f"source {esc(src)}"
+    out += (f": the detected rim lies k = {fnum(k, 3)} \u00b1 {fnum(ks, 3)} beam spacings (1 sigma) "
+            f"outside the true rim (model {esc(em.get('type', '?'))})")
+    rows = (meas or {}).get("measurements", [])
+    u = [float(r["beam_spacing_mm"]) for r in rows if r.get("beam_spacing_mm") is not None]
+    off = [float(r["edge_offset_mm"]) for r in rows if r.get("edge_offset_mm") is not None]
+    if u:
+        out += f"; beam spacing at the discs {fnum(min(u), 2)} to {fnum(max(u), 2)} mm"
+    if off:
+        out += f", rim offset {fnum(min(off), 2)} to {fnum(max(off), 2)} mm"
+    mix = [float(r["mixed_share"]) for r in rows if r.get("mixed_share") is not None]
+    if mix:
+        out += f", median mixed share of the rim crossings {fnum(float(np.median(mix)), 2)}"
+    return out
 
 
 def axes_table(cal: dict, truth: dict | None) -> pd.DataFrame:
