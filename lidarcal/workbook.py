@@ -145,54 +145,90 @@ def check_parameters_cell(nb, path: Path) -> None:
                              "every workbook notebook must take its dataset from one")
 
 
-def _kernel_manager(workdir: Path):
-    """A kernel manager talking to the kernel over unix sockets in ``workdir`` where that
-    exists (POSIX): the local kernel needs no TCP ports (and says nothing about them)."""
+def _kernel_manager(workdir: Path, kernel_log):
+    """A kernel manager whose kernel writes its own log (not the cells' output, which goes to
+    the notebook) to the open file ``kernel_log`` instead of our stderr, and talks over unix sockets in
+    ``workdir`` where those exist (POSIX: no TCP ports for a local kernel)."""
     from jupyter_client.manager import AsyncKernelManager
-
-    if os.name != "posix":
-        return AsyncKernelManager
 
     class LocalKernelManager(AsyncKernelManager):
         def __init__(self, **kw):
             super().__init__(**kw)
-            self.transport = "ipc"
-            self.ip = str(workdir / "kernel")
+            if os.name == "posix":
+                self.transport = "ipc"
+                self.ip = str(workdir / "kernel")
+
+        async def start_kernel(self, **kw):
+            kw.setdefault("stderr", kernel_log)
+            return await super().start_kernel(**kw)
 
     return LocalKernelManager
 
 
-def execute_notebook(path: Path, out: Path, dataset: Path, timeout: int) -> None:
-    """Run one notebook with papermill: fresh kernel, ``DATASET`` injected, working directory
-    = the notebook's folder, matplotlib inline; the executed copy is written to ``out``.
+def _cell_name(path: Path, executed: Path, index: int) -> str:
+    """``code cell K (id ID)`` of the notebook ``path`` for the failed cell of its executed copy
+    (the cell with the error output: the copy also holds papermill's parameters and error
+    banner cells, so ``index``, papermill's, is only the fallback)."""
+    import nbformat
+
+    try:
+        cid = next(c.get("id") for c in nbformat.read(executed, as_version=4).cells
+                   if any(o.get("output_type") == "error" for o in c.get("outputs", [])))
+        code = [c.get("id") for c in nbformat.read(path, as_version=4).cells
+                if c.cell_type == "code"]
+        return f"code cell {code.index(cid) + 1} (id {cid})"
+    except (OSError, StopIteration, ValueError, KeyError):
+        return f"cell {index + 1} of the executed notebook"
+
+
+def _log_tail(path: Path, lines: int = 5) -> str:
+    try:
+        text = path.read_text(errors="replace").strip().splitlines()
+    except OSError:
+        return ""
+    return "; kernel log: " + " | ".join(text[-lines:]) if text else ""
+
+
+def execute_notebook(path: Path, out: Path, dataset: Path | None, timeout: int) -> None:
+    """Run one notebook with papermill: fresh kernel, ``DATASET`` injected (with ``dataset``
+    None the notebook runs on its own default), working directory = the notebook's folder,
+    matplotlib inline; the executed copy is written to ``out``.
 
     Raises :class:`DatasetError` naming the notebook and the failing cell.
     """
     import nbformat
     import papermill as pm
 
-    check_parameters_cell(nbformat.read(path, as_version=4), path)
+    if dataset is not None:
+        check_parameters_cell(nbformat.read(path, as_version=4), path)
+    log = out.with_suffix(".kernel.log")
     old = os.environ.get("MPLBACKEND")
     os.environ["MPLBACKEND"] = "module://matplotlib_inline.backend_inline"
-    log = logging.getLogger("papermill")
-    level = log.level
-    log.setLevel(logging.ERROR)  # papermill's notes (e.g. "Black is not installed") are not errors
+    pm_log = logging.getLogger("papermill")
+    level = pm_log.level
+    pm_log.setLevel(logging.ERROR)  # papermill's notes (e.g. "Black is not installed") are not errors
     try:
-        pm.execute_notebook(str(path), str(out), parameters={PARAMETER: str(dataset)},
-                            kernel_name="python3", cwd=str(path.parent), progress_bar=False,
-                            log_output=False, execution_timeout=timeout,
-                            request_save_on_cell_execute=False,
-                            kernel_manager_class=_kernel_manager(out.parent))
+        with open(log, "ab") as kernel_log:
+            pm.execute_notebook(str(path), str(out),
+                                parameters={} if dataset is None else {PARAMETER: str(dataset)},
+                                kernel_name="python3", language="python", cwd=str(path.parent),
+                                progress_bar=False,
+                                log_output=False, execution_timeout=timeout,
+                                request_save_on_cell_execute=False,
+                                kernel_manager_class=_kernel_manager(out.parent, kernel_log))
     except pm.PapermillExecutionError as e:
         msg = " ".join(ANSI.sub("", str(e.evalue)).split())[:500]
-        raise DatasetError(path, f"cell {e.exec_count} raised {e.ename}: {msg}; run this notebook "
-                                 f"in JupyterLab (make lab) with {PARAMETER} = '{dataset}' "
-                                 "to see it") from None
+        on = "" if dataset is None else f" with {PARAMETER} = '{dataset}'"
+        raise DatasetError(path, f"{_cell_name(path, out, e.cell_index)} raised {e.ename}: {msg}; "
+                                 "run this notebook "
+                                 f"in JupyterLab (make lab){on} to see it") from None
+    except RuntimeError as e:  # the kernel died or did not start
+        raise DatasetError(path, f"the kernel failed ({e}){_log_tail(log)}") from None
     except TimeoutError as e:
         raise DatasetError(path, f"a cell ran longer than {timeout} s ({e}); raise --timeout") \
             from None
     finally:
-        log.setLevel(level)
+        pm_log.setLevel(level)
         if old is None:
             os.environ.pop("MPLBACKEND", None)
         else:
@@ -312,7 +348,7 @@ def build(notebooks: Sequence[Path], out_pdf: Path, *, dataset: Path | None = No
             done = work / path.name
             if execute:
                 log(f"executing {path.name}")
-                execute_notebook(path, done, ds.root, timeout)
+                execute_notebook(path, done, None if ds is None else ds.root, timeout)
                 nb = nbformat.read(done, as_version=4)
             else:
                 nb = nbformat.read(path, as_version=4)
