@@ -94,3 +94,18 @@ def test_unreadable_dataset_exits_2_with_one_line(dataset_copy):
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "dataset.json: not valid JSON" in lines[0]
+
+
+def test_readme_own_rig_commands(dataset_copy, tmp_path):
+    """The README's "Calibrate your own rig" sequence after the import: check, calibrate, report
+    (the workbook step is tests/test_workbook.py, the import tests/ the bag reader's)."""
+    out = tmp_path / "OUT"
+    r = lidarcal("check", dataset_copy, cwd=tmp_path)
+    assert r.returncode == 0 and (tmp_path / f"{dataset_copy.name}-check.png").is_file(), r.stdout
+    r = lidarcal("calibrate", dataset_copy, "--out", out)
+    assert r.returncode == 0, r.stderr
+    cal = json.loads((out / "calibration.json").read_text())
+    assert cal["format"] == "lidarcal-calibration/1" and len(cal["poses"]) == 4
+    r = lidarcal("report", dataset_copy, "--out", out / "report.pdf")
+    assert r.returncode == 0, r.stderr
+    assert (out / "report.pdf").read_bytes()[:5] == b"%PDF-"
