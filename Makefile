@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 DATA := data/paper_rig
 OUT := reports/calibration
 
-.PHONY: install test report bench data notebooks clean lint study
+.PHONY: install test report bench data notebooks clean lint study lab
 
 install: $(STAMP)
 
@@ -26,8 +26,11 @@ report: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/lidarcal measure $(DATA) --calibration $(OUT)/calibration.json --out $(OUT)
 	MPLBACKEND=Agg $(BIN)/lidarcal report $(DATA) --calibration $(OUT)/calibration.json \
 		--measurements $(OUT)/measurements.json --out reports/calibration-report.pdf
-	MPLBACKEND=Agg $(BIN)/python scripts/workbook.py notebooks reports/workbook.pdf
+	MPLBACKEND=Agg $(BIN)/lidarcal workbook $(DATA) --out reports/workbook.pdf
 	@echo "wrote reports/calibration-report.pdf and reports/workbook.pdf"
+
+lab: $(STAMP)  # JupyterLab on the workbook (set DATASET in each notebook's first code cell)
+	$(BIN)/jupyter lab notebooks
 
 data: $(STAMP)
 	$(BIN)/lidarcal simulate $(DATA) --seed 0 --rig paper --overwrite

@@ -132,6 +132,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, required=True, help="report PDF path")
     s.add_argument("--calibration", type=Path, default=None)
     s.add_argument("--measurements", type=Path, default=None)
+
+    s = sub.add_parser("check", help="check a dataset before calibrating: detections per position, "
+                                     "no fits; exit 0 usable, 1 problems, 2 unreadable")
+    s.add_argument("dataset", type=Path)
+    s.add_argument("--sheet", type=Path, default=None,
+                   help="contact sheet (.png or .pdf; default: NAME-check.png in the current folder)")
+    s.add_argument("--no-sheet", action="store_true", help="write no contact sheet")
+
+    s = sub.add_parser("workbook", help="run the numbered notebooks on a dataset, write one PDF")
+    s.add_argument("dataset", type=Path)
+    s.add_argument("--out", type=Path, required=True, help="workbook PDF path")
+    s.add_argument("--timeout", type=int, default=900, help="per-cell timeout, s (default 900)")
+    s.add_argument("--notebooks", default=None,
+                   help="comma-separated notebook numbers to run, e.g. 01,02,05 (default: all)")
+    s.add_argument("--notebook-dir", type=Path, default=None,
+                   help="folder of the numbered notebooks (default: the repository's notebooks/)")
+    s.add_argument("--keep", type=Path, default=None,
+                   help="also copy the executed notebooks and the typst source here")
     return p
 
 
@@ -269,15 +287,33 @@ def _cmd_report(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_check(a: argparse.Namespace) -> int:
+    from .check import run_check
+
+    return run_check(a.dataset, sheet=None if a.no_sheet else (a.sheet or "default"))
+
+
+def _cmd_workbook(a: argparse.Namespace) -> int:
+    from .workbook import write_workbook
+
+    select = a.notebooks.split(",") if a.notebooks else None
+    path = write_workbook(a.dataset, a.out, notebook_dir=a.notebook_dir, select=select,
+                          timeout=a.timeout, keep=a.keep)
+    print(f"wrote {path}")
+    return 0
+
+
 COMMANDS = {
     "simulate": _cmd_simulate,
     "import": _cmd_import,
+    "check": _cmd_check,
     "intrinsics": _cmd_intrinsics,
     "calibrate": _cmd_calibrate,
     "pose": _cmd_pose,
     "measure": _cmd_measure,
     "cloud": _cmd_cloud,
     "report": _cmd_report,
+    "workbook": _cmd_workbook,
 }
 
 

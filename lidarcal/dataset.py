@@ -1,4 +1,4 @@
-"""The dataset contract (``shared/dataset-format.md``): read, validate, write.
+"""The dataset contract (``docs/dataset-format.md``): read, validate, write.
 
 Every problem with the input is raised as :class:`DatasetError`, whose text is
 one line naming the file, what is wrong and what to do. The CLI prints it as

@@ -657,29 +657,27 @@ def reflectance_samples(camera: CameraModel, stripe_image: np.ndarray,
     return out
 
 
-def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
-                 boards: tuple[BoardView, BoardView], use_pnp: bool = False,
-                 min_snr: float = 8.0, rho: float | None = None,
-                 albedo_correction: bool = True) -> CameraLines:
-    """Laser plane (eq. 4), E, l1, l2 and alpha from one stripe image (section 1.3).
+#: Fewer stripe centres than this on a board: no usable stripe there (section 1.3).
+MIN_STRIPE_CENTRES = 10
 
-    ``use_pnp`` takes the board planes from ``cv2.solvePnP`` instead of the
-    homography (eqs. 2-3). With ``albedo_correction`` (and boards found by
-    :func:`lidarcal.board.find_v_boards`, which carry blackness maps) the
-    stripe centres are corrected for the squares' reflectance
-    (:func:`stripe_centres`); ``rho`` is then the stripe's black/white
-    reflectance ratio, estimated from this image's two stripes when not
-    given (better: once per dataset with :func:`estimate_reflectance_ratio`).
 
-    Raises
-    ------
-    ValueError
-        When a board shows fewer than 10 stripe centres (the caller names the file).
+def board_stripe_centres(camera: CameraModel, stripe_image: np.ndarray,
+                         boards: tuple[BoardView, BoardView], min_snr: float = 8.0,
+                         rho: float | None = None, albedo_correction: bool = True
+                         ) -> tuple[list[np.ndarray], float | None]:
+    """Sub-pixel laser-stripe centres (raw pixels, (N, 2) per board) on each board of the V,
+    the detection step of section 1.3 before any fit, and the reflectance ratio used.
+
+    With ``albedo_correction`` (and boards found by :func:`lidarcal.board.find_v_boards`,
+    which carry blackness maps) the centres are corrected for the squares' reflectance
+    (:func:`stripe_centres`); ``rho`` is the stripe's black/white reflectance ratio,
+    estimated from this image's two stripes when not given (better: once per dataset with
+    :func:`estimate_reflectance_ratio`). A board may get fewer than
+    :data:`MIN_STRIPE_CENTRES` centres (or none): the caller decides.
     """
     img = np.asarray(stripe_image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    planes = tuple(b.plane_pnp if use_pnp else b.plane for b in boards)
     crops = _board_inputs(img, boards, albedo_correction)
     use_albedo = albedo_correction and all(b.blackness is not None for b in boards)
     if not use_albedo:
@@ -694,13 +692,31 @@ def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
         rho = reflectance_ratio(samples)
         if rho is None:
             rho = 1.0  # not seen in this image: no division (background still uses blackness)
-    centres = []
-    for k in range(2):
-        c = _crop_centres(crops[k], camera, min_snr, rho)
-        if len(c) < 10:
-            raise ValueError(f"board {k}: found {len(c)} laser-stripe points, need at least 10; "
-                             "is the stripe on both boards and bright enough?")
-        centres.append(c)
+    return [_crop_centres(crops[k], camera, min_snr, rho) for k in range(2)], rho
+
+
+def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
+                 boards: tuple[BoardView, BoardView], use_pnp: bool = False,
+                 min_snr: float = 8.0, rho: float | None = None,
+                 albedo_correction: bool = True) -> CameraLines:
+    """Laser plane (eq. 4), E, l1, l2 and alpha from one stripe image (section 1.3).
+
+    ``use_pnp`` takes the board planes from ``cv2.solvePnP`` instead of the
+    homography (eqs. 2-3). The stripe centres are :func:`board_stripe_centres`
+    (``rho``, ``albedo_correction`` as there).
+
+    Raises
+    ------
+    ValueError
+        When a board shows fewer than 10 stripe centres (the caller names the file).
+    """
+    planes = tuple(b.plane_pnp if use_pnp else b.plane for b in boards)
+    centres, rho = board_stripe_centres(camera, stripe_image, boards, min_snr, rho,
+                                        albedo_correction)
+    for k, c in enumerate(centres):
+        if len(c) < MIN_STRIPE_CENTRES:
+            raise ValueError(f"board {k}: found {len(c)} laser-stripe points, need at least "
+                             f"{MIN_STRIPE_CENTRES}; is the stripe on both boards and bright enough?")
     return camera_lines_from_centres(camera, centres, planes, rho)
 
 

@@ -40,6 +40,8 @@ TESTED_BY = {
     "report": "test_readme_command_block",
     "cloud": "test_cloud.py::test_cli_cloud_one_sweep_and_all",
     "import": "test_bag.py::test_ros1_raw_images_cli",
+    "check": "test_check.py::test_readme_own_rig_commands",
+    "workbook": "test_workbook.py::test_workbook_runs_on_an_unseen_dataset_without_truth",
 }
 
 _CODE = re.compile(r"```[^\n]*\n(.*?)```|`([^`\n]+)`", re.DOTALL)

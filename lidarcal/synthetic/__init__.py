@@ -1,7 +1,7 @@
 """The rig simulator: a camera, a V-board and a 2D LiDAR on a turntable, with ground truth.
 
 ``simulate(out, seed, rig)`` writes a dataset folder in the contract
-(``shared/dataset-format.md``) plus ``truth.json``; ``make_truth(seed, rig)``
+(``docs/dataset-format.md``) plus ``truth.json``; ``make_truth(seed, rig)``
 samples the geometry only (cheap, for tests). Presets are in :data:`RIGS`:
 ``"paper"`` (the paper's rig), ``"wide"`` (a wide-angle, strongly distorted
 camera and a different LiDAR / board) and ``"harsh"`` (the paper rig with

@@ -1,4 +1,4 @@
-"""``simulate``: write a complete dataset folder in the contract (``shared/dataset-format.md``)."""
+"""``simulate``: write a complete dataset folder in the contract (``docs/dataset-format.md``)."""
 
 from __future__ import annotations
 
