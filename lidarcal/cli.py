@@ -25,6 +25,16 @@ def _pattern(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected COLSxROWS inner corners like 9x6, got {text!r}") from None
 
 
+def _non_negative(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidarcal", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
@@ -37,6 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--positions", type=int, default=None, help="number of turntable positions")
     s.add_argument("--no-sweeps", action="store_true", help="skip the disc-measurement sweeps")
     s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--range-offset-mm", type=float, default=0.0,
+                   help="LiDAR zero offset: every range reads this much too far (default 0)")
+    s.add_argument("--dark-extra-mm", type=float, default=0.0,
+                   help="returns from black squares read this much farther (default 0)")
+    s.add_argument("--range-quantum-mm", type=_non_negative, default=0.0,
+                   help="round ranges to multiples of this, e.g. 1 (default 0: not quantised)")
 
     s = sub.add_parser("intrinsics", help="calibrate camera intrinsics from chessboard photos")
     s.add_argument("images", type=Path, help="folder of chessboard images")
@@ -77,9 +93,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
-    from .synthetic import simulate
+    from .synthetic import get_rig, simulate
 
-    path = simulate(a.out, seed=a.seed, rig=a.rig, n_positions=a.positions,
+    rig = get_rig(a.rig)
+    if a.range_offset_mm or a.dark_extra_mm or a.range_quantum_mm:
+        rig = rig.with_(range_offset_mm=a.range_offset_mm, dark_extra_mm=a.dark_extra_mm,
+                        range_quantum_mm=a.range_quantum_mm)
+    path = simulate(a.out, seed=a.seed, rig=rig, n_positions=a.positions,
                     with_sweeps=not a.no_sweeps, overwrite=a.overwrite)
     print(f"wrote dataset {path}")
     return 0
