@@ -47,6 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--positions", type=int, default=None, help="number of turntable positions")
     s.add_argument("--no-sweeps", action="store_true", help="skip the disc-measurement sweeps")
     s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--no-intrinsics", action="store_true",
+                   help="skip the intrinsics chessboard photos (dataset.json then holds the camera)")
     s.add_argument("--range-offset-mm", type=float, default=0.0,
                    help="LiDAR zero offset: every range reads this much too far (default 0)")
     s.add_argument("--dark-extra-mm", type=float, default=0.0,
@@ -100,7 +102,8 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         rig = rig.with_(range_offset_mm=a.range_offset_mm, dark_extra_mm=a.dark_extra_mm,
                         range_quantum_mm=a.range_quantum_mm)
     path = simulate(a.out, seed=a.seed, rig=rig, n_positions=a.positions,
-                    with_sweeps=not a.no_sweeps, overwrite=a.overwrite)
+                    with_sweeps=not a.no_sweeps, overwrite=a.overwrite,
+                    with_intrinsics=False if a.no_intrinsics else None)
     print(f"wrote dataset {path}")
     return 0
 
