@@ -97,7 +97,7 @@ def estimate_range_quantum(range_mm: np.ndarray) -> float:
         return 0.0
     q = float(np.min(np.diff(u)))
     k = r / q
-    if q <= 0 or np.mean(np.abs(k - np.round(k)) <= 1e-6 * np.maximum(k, 1.0)) < 0.99:
+    if q <= 0 or np.mean(np.abs(k - np.round(k)) <= 1e-6) < 0.99:
         return 0.0
     return q
 
