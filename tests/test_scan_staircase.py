@@ -119,7 +119,7 @@ def test_real_flat_board_scans_no_v_and_one_board_piece(name: str) -> None:
     across, the only straight run of returns that long within 1.5 m) must be one piece holding
     >= 97 % of its returns (the splitter of white noise cut scan 00 into 9 pieces)."""
     d = pd.read_csv(REAL / f"{name}.csv")
-    ang, rho = d["angle_deg"].to_numpy(float), d["range_mm"].to_numpy(float)
+    ang, rho = d["angle_deg"].to_numpy(float), np.array(d["range_mm"], dtype=float)
     rho[rho <= 0] = np.nan
     assert estimate_range_quantum(rho) == 1.0
     with pytest.raises(ValueError, match="no pair forms the V"):
@@ -133,3 +133,19 @@ def test_real_flat_board_scans_no_v_and_one_board_piece(name: str) -> None:
     assert len(s.beams) >= 0.97 * np.isfinite(rho[s.span]).sum()
     # straight to a few noise sigmas (the real board ripples by a few mm; 3.3-4.9 mm measured)
     assert s.scale < 3 * sigma
+
+
+def test_merge_collinear_joins_a_cut_staircase_but_not_a_kink() -> None:
+    """Pieces cut inside one staircase surface are merged again; the two arms of a kink are not."""
+    from lidarcal.scan import _merge_collinear
+
+    rng = np.random.default_rng(2)
+    ang = np.radians(np.arange(-10, 10, 0.1))
+    rho = 1500.0 / np.cos(ang) + 6.0 * ((np.arange(len(ang)) // 9) % 2) + rng.normal(0, 1.0, len(ang))
+    p = scan_points(np.degrees(ang), rho)
+    assert _merge_collinear(p, [(0, 70), (70, 130), (130, len(p))]) == [(0, len(p))]
+    k = len(p) // 2
+    c, s = np.cos(np.radians(50)), np.sin(np.radians(50))
+    q = p.copy()
+    q[k:] = (p[k:] - p[k]) @ np.array([[c, -s], [s, c]]).T + p[k]
+    assert _merge_collinear(q, [(0, k), (k, len(q))]) == [(0, k), (k, len(q))]
