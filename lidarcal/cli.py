@@ -35,6 +35,16 @@ def _diameters(text: str) -> tuple[float, ...]:
     return vals
 
 
+def _non_negative(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidarcal", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
@@ -52,6 +62,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--disc-diameters", type=_diameters, default=None, metavar="D1,D2,...",
                    help="disc sizes in mm, used in turn by the trials (e.g. 100,140,200)")
     s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--no-intrinsics", action="store_true",
+                   help="skip the intrinsics chessboard photos (dataset.json then holds the camera)")
+    s.add_argument("--range-offset-mm", type=float, default=0.0,
+                   help="LiDAR zero offset: every range reads this much too far (default 0)")
+    s.add_argument("--dark-extra-mm", type=float, default=0.0,
+                   help="returns from black squares read this much farther (default 0)")
+    s.add_argument("--range-quantum-mm", type=_non_negative, default=0.0,
+                   help="round ranges to multiples of this, e.g. 1 (default 0: not quantised)")
 
     s = sub.add_parser("import", help="turn a ROS 1 / ROS 2 bag into a dataset folder")
     s.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder (sqlite3, mcap)")
@@ -162,8 +180,12 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         rig = rig.with_(footprint_model=a.footprint)
     if a.disc_diameters is not None:
         rig = rig.with_(disc_diameters_mm=a.disc_diameters)
+    if a.range_offset_mm or a.dark_extra_mm or a.range_quantum_mm:
+        rig = rig.with_(range_offset_mm=a.range_offset_mm, dark_extra_mm=a.dark_extra_mm,
+                        range_quantum_mm=a.range_quantum_mm)
     path = simulate(a.out, seed=a.seed, rig=rig, n_positions=a.positions,
-                    with_sweeps=not a.no_sweeps, overwrite=a.overwrite)
+                    with_sweeps=not a.no_sweeps, overwrite=a.overwrite,
+                    with_intrinsics=False if a.no_intrinsics else None)
     print(f"wrote dataset {path}")
     return 0
 

@@ -31,6 +31,11 @@ from scipy.sparse.csgraph import connected_components
 
 _MAD = 1.4826  # MAD -> standard deviation for Gaussian noise
 _TAN_MAX_INCIDENCE = 6.0  # surfaces up to ~80 deg incidence count as continuous
+# a piece is two lines only if the second line at least halves the robust residual scale: a
+# kink (the hinge, a mount) does; structure along one surface (a staircase of dark squares read
+# farther, quantised ranges, a real sensor's range ripple) does not
+_SPLIT_GAIN = 0.5
+_LEVEL_RUN = 4  # consecutive beams off the line at one level: a square, not an outlier
 
 
 # ---------------------------------------------------------------------------
@@ -76,6 +81,39 @@ def estimate_range_noise(range_mm: np.ndarray) -> float:
         raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
                          "range noise; pass range_noise_mm")
     return float(_MAD * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+def estimate_range_quantum(range_mm: np.ndarray) -> float:
+    """The ranges' resolution (mm): the smallest gap between distinct valid ranges, 0 if none.
+
+    A Hokuyo UTM-30LX reports integer mm (1.0), a dataset written with one
+    decimal 0.1. Accepted only when at least 99 % of the valid ranges are
+    multiples of it (else 0: not quantised).
+    """
+    r = np.asarray(range_mm, dtype=float)
+    r = r[np.isfinite(r) & (r > 0)]
+    u = np.unique(r)
+    if len(u) < 3:
+        return 0.0
+    q = float(np.min(np.diff(u)))
+    k = r / q
+    if q <= 0 or np.mean(np.abs(k - np.round(k)) <= 1e-6) < 0.99:
+        return 0.0
+    return q
+
+
+def effective_range_noise(range_mm: np.ndarray) -> float:
+    """Range noise (mm) for the segmentation thresholds: ``sqrt(sigma^2 + q^2 / 12)``.
+
+    ``sigma`` from second differences (:func:`estimate_range_noise`), ``q`` the
+    ranges' quantum (:func:`estimate_range_quantum`), whose rounding error is
+    uniform with variance ``q^2 / 12``: on real quantised scans a third of the
+    neighbouring ranges are equal, the second differences mostly 0 and their
+    MAD alone would call the noise nil.
+    """
+    sigma = estimate_range_noise(range_mm)
+    q = estimate_range_quantum(range_mm)
+    return float(np.sqrt(sigma ** 2 + q ** 2 / 12.0))
 
 
 # ---------------------------------------------------------------------------
@@ -158,24 +196,61 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
     return left + right
 
 
+def _mad_scale(r: np.ndarray) -> float:
+    """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
+    return float(_MAD * np.median(np.abs(r - np.median(r))))
+
+
+def _two_line_scale(p: np.ndarray, k: int) -> float:
+    """Robust scale of the pooled residuals of TLS lines through ``p[:k]`` and ``p[k:]``."""
+    return _mad_scale(np.concatenate([fit_line_2d(p[:k]).distance(p[:k]),
+                                      fit_line_2d(p[k:]).distance(p[k:])]))
+
+
 def _split_into_lines(p: np.ndarray, sigma: float, min_points: int) -> list[tuple[int, int]]:
     """Top-down split of ordered points into line pieces, as [start, end) ranges.
 
     A piece is split at the breakpoint minimising the two-line TLS error while
-    its single-line residuals have a robust scale (MAD) above ``2 sigma``.
+    its single-line residuals have a robust scale (MAD) above ``2 sigma`` *and*
+    the two lines at least halve that scale (``_SPLIT_GAIN``): the test adapts
+    to the measured residuals, so a surface whose ranges step by a few mm
+    along it (dark squares read farther, quantised or rippled real ranges)
+    stays one piece, while a kink (the hinge, a mount) is split.
     """
     n = len(p)
     if n < 2 * min_points:
         return [(0, n)]
-    r = fit_line_2d(p).distance(p)
-    scale = _MAD * np.median(np.abs(r - np.median(r)))
+    scale = _mad_scale(fit_line_2d(p).distance(p))
     if scale <= 2.0 * sigma:
         return [(0, n)]
     sse = _tls_sse_splits(p, min_points, n - min_points + 1)
     k = min_points + int(np.argmin(sse))
+    if _two_line_scale(p, k) > _SPLIT_GAIN * scale:
+        return [(0, n)]
     left = _split_into_lines(p[:k], sigma, min_points)
     right = _split_into_lines(p[k:], sigma, min_points)
     return left + [(a + k, b + k) for a, b in right]
+
+
+def _merge_collinear(p: np.ndarray, pieces: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Merge neighbouring pieces that are one line by the split test of :func:`_split_into_lines`.
+
+    Two adjacent pieces are merged when one line through both has a robust
+    residual scale below ``1 / _SPLIT_GAIN`` times that of their own two lines
+    (the top-down split may cut a long staircase where neither half is straight).
+    """
+    out = list(pieces)
+    merged = True
+    while merged and len(out) > 1:
+        merged = False
+        for i in range(len(out) - 1):
+            (a, k), (_, b) = out[i], out[i + 1]
+            q = p[a:b]
+            if _mad_scale(fit_line_2d(q).distance(q)) * _SPLIT_GAIN < _two_line_scale(q, k - a):
+                out[i:i + 2] = [(a, b)]
+                merged = True
+                break
+    return out
 
 
 def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
@@ -214,7 +289,38 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         if np.array_equal(new, mask):
             break
         mask = new
+    levels = _level_runs(p, line, mask, sigma)
+    if levels.any():
+        mask = mask | levels
+        line = fit_line_2d(p[mask])
     return line, mask, float(scale)
+
+
+def _level_runs(p: np.ndarray, line: Line2D, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Rejected points that are a level of the surface, not outliers: a staircase of squares.
+
+    A time-of-flight LiDAR reads dark squares a few mm farther than white
+    ones; when that step is large against the noise the robust line keeps one
+    level and rejects the other. Outliers (spurious returns, mixed pixels) are
+    isolated beams; a level is a run of at least ``_LEVEL_RUN`` consecutive
+    rejected points lying parallel to the line (their residuals' robust
+    spread within ``3 sigma``) and offset from it by no more than the range
+    step the run detection (:func:`_runs`) accepts between neighbouring beams
+    on one surface (``6 sqrt(2) sigma + _TAN_MAX_INCIDENCE x`` point spacing).
+    """
+    out = np.zeros(len(p), bool)
+    bad = np.flatnonzero(~mask)
+    if len(bad) < _LEVEL_RUN:
+        return out
+    r = line.distance(p)
+    spacing = float(np.median(np.hypot(*np.diff(p, axis=0).T)))
+    tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * spacing
+    for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
+        rr = r[run]
+        if (len(run) >= _LEVEL_RUN and abs(np.median(rr)) <= tau
+                and _mad_scale(rr) <= 3 * sigma):
+            out[run] = True
+    return out
 
 
 # ---------------------------------------------------------------------------
@@ -258,11 +364,20 @@ class VSegments:
 
 
 @dataclass
-class _Segment:
-    beams: np.ndarray  # beam indices of inliers (sorted)
-    span: np.ndarray  # all beam indices of the piece (sorted)
+class LineSegment:
+    """One straight piece of a scan (:func:`line_segments`).
+
+    ``beams``: beam indices of the inliers of its robust line (sorted);
+    ``span``: every beam index of the piece (sorted); ``line``: the robust
+    line; ``scale``: robust scale of its residuals, mm; ``run``: label of the
+    connected run of returns it was cut from.
+    """
+
+    beams: np.ndarray
+    span: np.ndarray
     line: Line2D
     scale: float
+    run: int = 0
 
 
 def _runs(rho: np.ndarray, valid_idx: np.ndarray, dtheta: float, sigma: float,
@@ -305,6 +420,53 @@ def _trim_outer(beams: np.ndarray, resid: np.ndarray, scale: float, from_start: 
     return keep
 
 
+def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
+                  range_noise_mm: float | None = None, min_points: int = 8,
+                  max_gap: int = 4) -> tuple[list[LineSegment], float]:
+    """The straight pieces of one scan, in beam order, and the range noise used (mm).
+
+    Steps (1)-(3) of :func:`split_v`, usable for any board (a flat one too):
+    (1) runs of returns connected in beam order (:func:`_runs`); (2) each run
+    cut top-down into straight pieces (:func:`_split_into_lines`: a cut must
+    halve the robust residual scale, so a staircase of dark squares read a few
+    mm farther or quantised, rippled real ranges stay one piece) and
+    neighbouring collinear pieces merged (:func:`_merge_collinear`); (3) a
+    robust line per piece (:func:`_robust_line`: RANSAC, iterated TLS at 3.5 x
+    the MAD scale, runs of consecutive beams at one offset kept as a level of
+    the surface). Pieces with fewer than ``min_points`` inliers are dropped.
+
+    The noise is ``range_noise_mm`` if given, else :func:`effective_range_noise`
+    (second differences plus the quantisation's ``q^2 / 12``).
+    """
+    ang = np.asarray(angle_deg, dtype=float)
+    pts = scan_points(ang, range_mm)
+    rho = np.hypot(pts[:, 0], pts[:, 1])
+    if np.any(np.diff(ang) <= 0):
+        raise ValueError("scan angles must be strictly ascending (beam order)")
+    valid_idx = np.flatnonzero(np.isfinite(rho))
+    if len(valid_idx) < min_points:
+        return [], float(range_noise_mm or 0.0)
+    sigma = float(range_noise_mm) if range_noise_mm is not None else effective_range_noise(rho)
+    sigma = max(sigma, 1e-6 * float(np.median(rho[valid_idx])))
+    dtheta = float(np.median(np.diff(np.radians(ang))))
+    rng = np.random.default_rng(0)
+
+    labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
+    segments: list[LineSegment] = []
+    for lab in np.unique(labels):
+        beams = valid_idx[labels == lab]
+        if len(beams) < min_points:
+            continue
+        p = pts[beams]
+        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points)):
+            span = beams[a:b]
+            line, mask, scale = _robust_line(pts[span], sigma, rng)
+            if mask.sum() >= min_points:
+                segments.append(LineSegment(span[mask], span, line, scale, int(lab)))
+    segments.sort(key=lambda s: s.beams[0])
+    return segments, sigma
+
+
 def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: float | None = None,
             alpha: float | None = None, alpha_tol_deg: float = 15.0,
             opening_deg: tuple[float, float] = (90.0, 170.0), min_points: int = 8,
@@ -312,10 +474,12 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
     """Find the two board segments of the V in one scan (section 1.4).
 
     The scan also holds background, mounts, spurious returns, dropped beams and
-    mixed pixels at depth edges. Steps: (1) runs of returns connected in beam
-    order (a range jump large against noise and beam spacing breaks a run);
-    (2) each run is split top-down into straight pieces; (3) each piece gets a
-    robust line (RANSAC + iterated TLS, threshold 3.5 x MAD scale); (4) of the
+    mixed pixels at depth edges. Steps (1)-(3) are :func:`line_segments`:
+    (1) runs of returns connected in beam order (a range jump large against
+    noise and beam spacing breaks a run); (2) each run is split top-down into
+    straight pieces (a staircase of squares at different ranges, quantised
+    ranges stay whole); (3) each piece gets a robust line (RANSAC + iterated
+    TLS, threshold 3.5 x MAD scale); (4) of the
     pieces adjacent in beam order (or separated only by pieces farther than the
     vertex, seen through a gap at the hinge), the pair forming a concave V
     (vertex away from the scanner, ``z . (l1 x l2) < 0``, see module docstring)
@@ -329,7 +493,8 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
     angle_deg, range_mm : arrays, shape (N,)
         The scan, ascending angles; NaN range = no return.
     range_noise_mm : float, optional
-        Range noise sigma; estimated robustly (:func:`estimate_range_noise`) if None.
+        Range noise sigma; estimated robustly (:func:`effective_range_noise`:
+        second differences plus quantisation) if None.
     alpha : float, optional
         The camera's V angle (rad): when given, only pairs whose free opening is
         within ``alpha_tol_deg`` of it qualify.
@@ -346,30 +511,12 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
     ang = np.asarray(angle_deg, dtype=float)
     pts = scan_points(ang, range_mm)
     rho = np.hypot(pts[:, 0], pts[:, 1])
-    if np.any(np.diff(ang) <= 0):
-        raise ValueError("scan angles must be strictly ascending (beam order)")
-    valid_idx = np.flatnonzero(np.isfinite(rho))
-    if len(valid_idx) < 2 * min_points:
-        raise ValueError(f"scan has {len(valid_idx)} returns; need at least {2 * min_points} "
+    n_valid = int(np.isfinite(rho).sum())
+    if n_valid < 2 * min_points:
+        raise ValueError(f"scan has {n_valid} returns; need at least {2 * min_points} "
                          "to find the two board segments")
-    sigma = float(range_noise_mm) if range_noise_mm is not None else estimate_range_noise(rho)
-    sigma = max(sigma, 1e-6 * float(np.median(rho[valid_idx])))
-    dtheta = float(np.median(np.diff(np.radians(ang))))
-    rng = np.random.default_rng(0)
-
-    labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
-    segments: list[_Segment] = []
-    for lab in np.unique(labels):
-        beams = valid_idx[labels == lab]
-        if len(beams) < min_points:
-            continue
-        p = pts[beams]
-        for a, b in _split_into_lines(p, sigma, min_points):
-            span = beams[a:b]
-            line, mask, scale = _robust_line(pts[span], sigma, rng)
-            if mask.sum() >= min_points:
-                segments.append(_Segment(span[mask], span, line, scale))
-    segments.sort(key=lambda s: s.beams[0])
+    segments, sigma = line_segments(ang, range_mm, range_noise_mm=range_noise_mm,
+                                    min_points=min_points, max_gap=max_gap)
 
     if len(segments) < 2:
         raise ValueError(f"found {len(segments)} board segment{'s' if len(segments) != 1 else ''}, "

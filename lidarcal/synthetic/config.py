@@ -84,6 +84,10 @@ class RigConfig:
     spurious_rate: float = 0.0                     # fraction of beams with a random range
     drop_rate: float = 0.0                         # fraction of beams with no return
     encoder_noise_deg: float = 0.0                 # reported psi = true psi + noise
+    # --- LiDAR ranging errors (default off; lidar.py: apply_ranging_errors, dark_range_bias) ---
+    range_offset_mm: float = 0.0                   # zero offset: every valid range reads this much too far
+    dark_extra_mm: float = 0.0                     # returns from black squares read this much farther
+    range_quantum_mm: float = 0.0                  # ranges rounded to multiples of this (0: none)
     # --- disc measurement trials ---
     n_discs: int = 10
     disc_diameter_mm: float = 140.0

@@ -32,6 +32,16 @@ never a mixed range. The rim is then found where ``echo_threshold`` of the
 returned energy comes from the disc, outside the half-energy point, so the
 disc looks larger by a fraction of the spot (what an edge model must absorb).
 
+Ranging errors (all off by default, see :class:`~lidarcal.synthetic.config.RigConfig`):
+``dark_extra_mm`` is added to the range of every sub-ray that hits a black
+square (a time-of-flight sensor reads weak returns late), so a beam wholly on
+a black square reads exactly that much farther and one straddling a square
+edge in proportion to the energy on black (:func:`dark_range_bias`);
+``range_offset_mm`` is added to every valid range before the noise (a zero
+offset); ``range_quantum_mm`` rounds the noisy ranges to multiples of the
+quantum (e.g. 1 mm: a Hokuyo UTM-30LX reports integer mm) before the range
+window is applied (:func:`apply_ranging_errors`).
+
 Speed: each beam is first probed with 7 sub-rays (centre + 6 on the outer
 ring); only beams whose probes do not all hit the same surface are traced
 with the full footprint. A surface boundary that cuts only a sliver of the
@@ -96,7 +106,50 @@ def _energy(surfaces: list, t: np.ndarray, idx: np.ndarray, orig: np.ndarray, di
     mat = materials(surfaces, pts, idx)
     nrm = surface_normals(surfaces, pts, idx)
     cos_inc = np.abs(np.einsum("ij,ij->i", nrm, dirs))
+    if rig.dark_extra_mm:
+        t = t + dark_range_bias(mat, rig)
     return t, idx, w * refl[mat] * cos_inc
+
+
+def dark_range_bias(mat: np.ndarray, rig: RigConfig) -> np.ndarray:
+    """Extra range (mm) of sub-rays by material: ``dark_extra_mm`` on black squares, else 0."""
+    return np.where(np.asarray(mat) == BLACK, float(rig.dark_extra_mm), 0.0)
+
+
+def apply_ranging_errors(ranges_mm: np.ndarray, rig: RigConfig, stage: str) -> np.ndarray:
+    """The LiDAR's systematic ranging errors on ranges (0 = no return), by stage.
+
+    ``stage="offset"`` (before the noise): every valid range reads
+    ``range_offset_mm`` too far. ``stage="quantise"`` (after the noise, spurious
+    returns and dropouts): ranges rounded to multiples of ``range_quantum_mm``.
+    A zero setting leaves the array untouched (the default rigs' bytes).
+    """
+    r = np.asarray(ranges_mm, dtype=float)
+    if stage == "offset":
+        return r + (r > 0) * rig.range_offset_mm if rig.range_offset_mm else r
+    if stage == "quantise":
+        q = rig.range_quantum_mm
+        return np.round(r / q) * q if q > 0 else r
+    raise ValueError(f"stage must be 'offset' or 'quantise', got {stage!r}")
+
+
+def beam_materials(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
+                   angles_deg: np.ndarray | None = None) -> np.ndarray:
+    """Material code (scene :data:`~lidarcal.synthetic.scene.MATERIALS`) hit by each beam's centre ray.
+
+    Shape (P, B) for poses ``R`` (P, 3, 3), ``T`` (P, 3); tells which square a
+    beam hits (``BLACK`` returns carry ``dark_extra_mm``), ``NOTHING`` past range_max.
+    """
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    T = np.asarray(T, dtype=float).reshape(-1, 3)
+    ang = np.radians(beam_angles_deg(rig) if angles_deg is None else np.asarray(angles_deg, float))
+    d = np.column_stack([np.cos(ang), np.sin(ang), np.zeros(len(ang))])
+    dirs = np.einsum("pij,bj->pbi", R, d).reshape(-1, 3)
+    orig = np.repeat(T, len(ang), axis=0)
+    t, idx = trace(surfaces, dirs, origins=orig)
+    idx = np.where(t <= rig.lidar_range_max_mm, idx, -1)
+    pts = orig + dirs * np.where(np.isfinite(t), t, 0.0)[:, None]
+    return materials(surfaces, pts, idx).reshape(len(R), len(ang))
 
 
 def _cast(surfaces: list, R: np.ndarray, T: np.ndarray, o_l: np.ndarray, d_l: np.ndarray, w: np.ndarray,
@@ -203,6 +256,7 @@ def simulate_scans(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
             res[pi, bi] = echo(tf.reshape(len(pi), M), idf.reshape(len(pi), M), ef.reshape(len(pi), M),
                                 len(surfaces), rig)
         out[p0:p0 + n] = res
+    out = apply_ranging_errors(out, rig, "offset")
     ok = out > 0
     out = out + ok * rng.normal(0.0, rig.range_noise_mm, out.shape)
     if rig.spurious_rate > 0:
@@ -210,5 +264,6 @@ def simulate_scans(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
         out[spur] = rng.uniform(rig.lidar_range_min_mm, rig.lidar_range_max_mm, int(spur.sum()))
     if rig.drop_rate > 0:
         out[rng.random(out.shape) < rig.drop_rate] = 0.0
+    out = apply_ranging_errors(out, rig, "quantise")
     out[(out < rig.lidar_range_min_mm) | (out > rig.lidar_range_max_mm)] = 0.0
     return np.round(out, 1)

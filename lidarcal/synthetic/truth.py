@@ -215,7 +215,22 @@ class RigTruth:
                       **_footprint_truth(rig)},
             "intrinsics_views": [v.to_dict() for v in self.intrinsics_views],
             "measurements": [d.to_dict() for d in self.discs],
+            **ranging_truth(rig),
         }
+
+
+def ranging_truth(rig: RigConfig) -> dict:
+    """truth.json's ``ranging`` block (the LiDAR's systematic ranging errors), only when any is set.
+
+    ``offset_mm``: every valid range reads this much too far; ``dark_extra_mm``:
+    returns from black squares read this much farther still; ``quantum_mm``:
+    ranges are multiples of it (0 = not quantised). Absent = no ranging errors,
+    so the default rigs' truth.json is unchanged.
+    """
+    terms = (rig.range_offset_mm, rig.dark_extra_mm, rig.range_quantum_mm)
+    if not any(terms):
+        return {}
+    return {"ranging": dict(zip(("offset_mm", "dark_extra_mm", "quantum_mm"), map(float, terms)))}
 
 
 # ----------------------------------------------------------------------------- sampling
