@@ -1,0 +1,780 @@
+"""The classic one-board calibration of a 2D LiDAR against a camera (Zhang & Pless 2004).
+
+Each view shows one flat chessboard to the camera (its plane ``n_i . X = d_i``
+in the camera frame, from the corners) and to the LiDAR (a line of returns
+in the scan plane). A LiDAR point ``p = (x, y, 0)`` on the board satisfies
+the point-on-plane constraint (Zhang & Pless, eq. 5)::
+
+    n_i . (R p + T) = d_i,   i.e.   n_i^T H (x, y, 1)^T = d_i,   H = [r1 r2 T]
+
+which is linear in the nine entries of ``H``. Steps:
+
+1. board plane per view with its 3x3 covariance from the corner noise
+   (:func:`board_plane`, ``cv2.solvePnP`` + the projection Jacobian);
+2. straight segments of each scan (:func:`scan_segments`, quantised ranges
+   allowed for) and the board segment chosen by consensus: linear hypotheses
+   ``H`` from a few views, every view's candidates scored against the board
+   plane they predict (:func:`select_board_segments`);
+3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
+   ``R`` the nearest rotation to ``[h1 h2 h1 x h2]``, ``T = h3``);
+4. all scan points gated on the predicted board plane (the board's width
+   is not needed) and the robust maximum-likelihood refinement
+   (:func:`refine_extrinsics`): point-to-plane residuals over the range noise
+   projected on the plane normal, each board plane a nuisance parameter with
+   its prior from the corners, ``scipy.optimize.least_squares`` with a
+   ``soft_l1`` loss;
+5. the covariance and its eigen-analysis (:func:`pose_uncertainty`): a
+   direction the views do not determine (e.g. every board vertical and the
+   scan plane horizontal: the height along the boards and the tilt of the
+   scan plane) is named in the warnings and its sigma is ``null``.
+
+Convention: ``X_cam = R X_lidar + T``, camera frame OpenCV's, mm; angles in
+degrees at the edges, radians inside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from .dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
+from .geometry import Plane, nearest_rotation, plane_basis
+from .scan import scan_points
+from .segments import MIN_POINTS, Segment, local_line_noise, scan_segments
+
+EXTRINSICS_FORMAT = "lidarcal-extrinsics/1"
+#: A pose direction whose 1-sigma exceeds this (mm; rotations count as the displacement they
+#: cause at the board points' RMS range) is reported as undetermined, its sigma as null.
+UNDETERMINED_MM = 50.0
+#: Views needed at all (each view constrains two of the six pose parameters).
+MIN_VIEWS = 3
+_MAD = 1.4826
+
+
+# ---------------------------------------------------------------------------
+# 1. board planes with their uncertainty
+
+@dataclass(frozen=True)
+class BoardPlane:
+    """One view's board plane ``n . X = d`` (camera frame, mm) and its uncertainty.
+
+    ``cov`` (3, 3) is the covariance of ``(b1 . dn, b2 . dn, dd)``, with ``basis`` =
+    ``[b1 b2]`` (3, 2) spanning the plane's tangent directions: the first-order
+    propagation of the corner noise (``sigma_px``, from the reprojection residuals)
+    through ``cv2.solvePnP``'s pose. ``R``, ``T`` map board coordinates (mm) into the
+    camera frame (eq. 1); ``board`` is the pattern as found (either way round).
+    """
+
+    plane: Plane
+    cov: np.ndarray
+    basis: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    corners_px: np.ndarray
+    sigma_px: float
+    board: BoardSpec
+
+    def sigma_at(self, X: np.ndarray) -> np.ndarray:
+        """1-sigma (mm) of the plane's distance at camera-frame points ``X`` (N, 3)."""
+        X = np.atleast_2d(X)
+        g = np.column_stack([X @ self.basis, -np.ones(len(X))])  # d(n.X - d)/d(params)
+        return np.sqrt(np.einsum("ij,jk,ik->i", g, self.cov, g))
+
+
+def find_board(image: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, BoardSpec] | None:
+    """Chessboard corners (N, 2) with the pattern either way round (8x5 = 5x8), or None."""
+    from .camera import detect_chessboard
+
+    c, r = board.inner_corners
+    for size in ((c, r), (r, c)) if c != r else ((c, r),):
+        corners = detect_chessboard(image, size)
+        if corners is not None:
+            return corners, BoardSpec(size, board.square_mm)
+    return None
+
+
+def board_plane(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec) -> BoardPlane:
+    """Board plane (eq. 3 of the paper: ``r3 . X = r3 . T``) with its covariance.
+
+    The pose is ``cv2.solvePnP`` (iterative, the maximum-likelihood pose under
+    i.i.d. corner noise) started from the homography pose; the corner noise
+    ``sigma_px`` is the residual RMS with ``2N - 6`` degrees of freedom; the pose
+    covariance is ``sigma_px^2 (J^T J)^-1`` with ``J`` from ``cv2.projectPoints``,
+    propagated to the plane parameters by their Jacobian.
+    """
+    from .board import pose_from_homography, pose_pnp
+
+    obj = board.object_points()
+    R0, T0 = pose_from_homography(camera, corners_px, obj)
+    R, T = pose_pnp(camera, corners_px, obj, R0, T0)
+    rvec = cv2.Rodrigues(R)[0]
+    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
+    proj, jac = cv2.projectPoints(obj, rvec, T.reshape(3, 1), K, dist)
+    res = proj.reshape(-1, 2) - corners_px
+    n_obs = res.size
+    sigma_px = float(np.sqrt(np.sum(res ** 2) / max(n_obs - 6, 1)))
+    J = jac[:, :6]
+    cov_pose = sigma_px ** 2 * np.linalg.inv(J.T @ J)
+    plane = Plane.from_normal_point(R[:, 2], T)
+    basis = plane_basis(plane.normal).T  # (3, 2)
+
+    def params(x: np.ndarray) -> np.ndarray:
+        Rx = cv2.Rodrigues(x[:3])[0]
+        n = Rx[:, 2]
+        return np.array([basis[:, 0] @ n, basis[:, 1] @ n, n @ x[3:]])
+
+    x0 = np.concatenate([rvec.ravel(), T])
+    G = np.empty((3, 6))
+    for k in range(6):
+        h = 1e-6 if k < 3 else 1e-3
+        e = np.zeros(6)
+        e[k] = h
+        G[:, k] = (params(x0 + e) - params(x0 - e)) / (2 * h)
+    return BoardPlane(plane, G @ cov_pose @ G.T, basis, R, T, np.asarray(corners_px, float),
+                      sigma_px, board)
+
+
+# ---------------------------------------------------------------------------
+# 3. consensus on the board segment and the linear solution (Zhang & Pless)
+
+def _design(points_m: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Rows ``kron((x, y, 1), n)`` of the linear constraint ``n^T H (x, y, 1) = d`` (vec(H)
+    column-major), points in metres (conditioning)."""
+    ph = np.column_stack([points_m, np.ones(len(points_m))])
+    return np.einsum("ij,k->ijk", ph, normal).reshape(len(ph), 9)
+
+
+@dataclass(frozen=True)
+class _Moments:
+    """Normal-equation moments of one candidate segment under one view's plane (metres)."""
+
+    N: np.ndarray  # (9, 9)
+    b: np.ndarray  # (9,)
+    dd: float
+    n: int
+
+
+def _moments(points_mm: np.ndarray, plane: Plane) -> _Moments:
+    A = _design(points_mm / 1000.0, plane.normal)
+    d = np.full(len(A), plane.d / 1000.0)
+    return _Moments(A.T @ A, A.T @ d, float(d @ d), len(A))
+
+
+def _solve_h(N: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares ``vec(H)`` from summed moments (batched; a tiny ridge keeps rank-deficient
+    sets, e.g. parallel boards, solvable: their null space is left at zero)."""
+    tr = np.trace(N, axis1=-2, axis2=-1)[..., None, None]
+    return np.linalg.solve(N + 1e-10 * tr * np.eye(9), b[..., None])[..., 0]
+
+
+def _rms_under(h: np.ndarray, m: _Moments) -> np.ndarray:
+    """RMS (mm) of ``n^T H p - d`` over a candidate's points, for hypotheses ``h`` (K, 9)."""
+    sse = np.einsum("ki,ij,kj->k", h, m.N, h) - 2 * h @ m.b + m.dd
+    return 1000.0 * np.sqrt(np.maximum(sse, 0.0) / m.n)
+
+
+def _rigid_h(h: np.ndarray) -> np.ndarray:
+    """Hypotheses ``vec(H)`` (K, 9) made rigid: ``[r1 r2]`` from the nearest rotation to
+    ``[h1 h2 h1 x h2]`` (SVD, batched), ``h3`` kept. A wrong set of segments can fit the nine
+    free entries of ``H``; it rarely fits a rotation."""
+    Hm = h.reshape(-1, 3, 3).transpose(0, 2, 1)  # columns h1, h2, h3
+    M = np.stack([Hm[:, :, 0], Hm[:, :, 1], np.cross(Hm[:, :, 0], Hm[:, :, 1])], axis=2)
+    U, _, Vt = np.linalg.svd(M)
+    det = np.sign(np.linalg.det(U @ Vt))
+    D = np.ones((len(h), 3))
+    D[:, 2] = det
+    R = (U * D[:, None, :]) @ Vt
+    out = np.concatenate([R[:, :, 0], R[:, :, 1], Hm[:, :, 2]], axis=1)
+    return out
+
+
+def select_board_segments(candidates: list[list[Segment]], planes: list[Plane],
+                          gates_mm: list[float], rng: np.random.Generator,
+                          hypotheses: int = 10000, max_candidates: int = 4) -> list[int | None]:
+    """Which candidate segment of each view is the board: consensus of linear hypotheses.
+
+    A hypothesis is the least-squares ``H`` of ``min(5, n)`` random views with one random
+    candidate each (five views give the ten constraints nine unknowns need); every
+    candidate of every view is scored by the RMS of its points to the board plane
+    ``H`` predicts, a view agreeing when its best candidate is within its gate. The
+    hypothesis with most agreeing views (then the least summed RMS) wins; views that do
+    not agree get ``None``. Each view offers its ``max_candidates`` segments with the most
+    returns (a calibration board is a large, near surface); nothing else is assumed about
+    which segment is the board.
+    """
+    n = len(planes)
+    keep = [sorted(range(len(c)), key=lambda k: -len(c[k].beams))[:max_candidates]
+            for c in candidates]
+    mom = [[_moments(candidates[i][k].points, planes[i]) for k in keep[i]] for i in range(n)]
+    views = [i for i in range(n) if mom[i]]
+    if len(views) < MIN_VIEWS:
+        return [None] * n
+    k = min(5, len(views))
+    total = int(np.prod([float(len(mom[i])) for i in views]))
+    H = []
+    if total <= hypotheses and len(views) <= 6:  # small problems: every combination
+        import itertools
+        combos = list(itertools.product(*[range(len(mom[i])) for i in views]))
+        N = np.stack([sum(mom[i][c].N for i, c in zip(views, cb)) for cb in combos])
+        b = np.stack([sum(mom[i][c].b for i, c in zip(views, cb)) for cb in combos])
+        H = _solve_h(N, b)
+    else:
+        Ns, bs = [], []
+        for _ in range(hypotheses):
+            pick = rng.choice(views, size=k, replace=False)
+            cs = [mom[i][rng.integers(len(mom[i]))] for i in pick]
+            Ns.append(sum(c.N for c in cs))
+            bs.append(sum(c.b for c in cs))
+        H = _solve_h(np.stack(Ns), np.stack(bs))
+    H = _rigid_h(H)
+    best_count = np.zeros(len(H), int)
+    best_sum = np.zeros(len(H))
+    choice = np.full((len(H), n), -1)
+    for i in views:
+        rms = np.stack([_rms_under(H, m) for m in mom[i]], axis=1)  # (K, candidates)
+        j = np.argmin(rms, axis=1)
+        r = rms[np.arange(len(H)), j]
+        ok = r <= gates_mm[i]
+        best_count += ok
+        best_sum += np.where(ok, r, 0.0)
+        choice[:, i] = np.where(ok, j, -1)
+    order = np.lexsort((best_sum, -best_count))
+    win = choice[order[0]]
+    return [keep[i][int(c)] if c >= 0 else None for i, c in enumerate(win)]
+
+
+def linear_extrinsics(points_mm: list[np.ndarray], planes: list[Plane]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Zhang & Pless's linear solution: ``H`` by least squares over every point-on-plane
+    constraint ``n_i^T H (x, y, 1)^T = d_i``, ``R`` = nearest rotation to
+    ``[h1 h2 h1 x h2]`` (SVD), ``T = h3``. Returns ``(R, T_mm, singular values of the
+    design)``; small singular values flag an undetermined ``H``."""
+    A = np.vstack([_design(p / 1000.0, pl.normal) for p, pl in zip(points_mm, planes)])
+    d = np.concatenate([np.full(len(p), pl.d / 1000.0) for p, pl in zip(points_mm, planes)])
+    h, *_ = np.linalg.lstsq(A, d, rcond=1e-10)
+    s = np.linalg.svd(A, compute_uv=False)
+    Hm = h.reshape(3, 3, order="F")
+    h1, h2 = Hm[:, 0], Hm[:, 1]
+    if np.linalg.norm(h1) < 1e-6 or np.linalg.norm(h2) < 1e-6:
+        R = np.eye(3)
+    else:
+        R, _ = nearest_rotation(np.column_stack([h1, h2, np.cross(h1, h2)]))
+    return R, 1000.0 * Hm[:, 2], s
+
+
+# ---------------------------------------------------------------------------
+# 4. gating and the robust maximum-likelihood refinement
+
+def gate_board_points(angle_deg: np.ndarray, range_mm: np.ndarray, plane: Plane, R: np.ndarray,
+                      T: np.ndarray, tol_mm: float, seed_beams: np.ndarray | None = None,
+                      trim: int = 1) -> np.ndarray:
+    """Beam indices of the board's returns: the contiguous run (gaps of one beam allowed)
+    of returns within ``tol_mm`` of the board plane predicted by ``(R, T)`` that holds
+    the most ``seed_beams`` (or the longest run); ``trim`` beams are dropped at each
+    end (mixed returns on the board's edges). The board's width is not needed."""
+    p = scan_points(angle_deg, range_mm)
+    X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
+    with np.errstate(invalid="ignore"):
+        near = np.abs(plane.distance(X)) <= tol_mm
+    idx = np.flatnonzero(near)
+    if len(idx) == 0:
+        return idx
+    cuts = np.flatnonzero(np.diff(idx) > 2) + 1
+    runs = np.split(idx, cuts)
+    if seed_beams is not None and len(seed_beams):
+        score = [np.intersect1d(rn, seed_beams).size for rn in runs]
+    else:
+        score = [len(rn) for rn in runs]
+    run = runs[int(np.argmax(score))]
+    if len(run) > 2 * trim + MIN_POINTS:
+        run = run[trim:len(run) - trim]
+    return run
+
+
+@dataclass
+class ViewData:
+    """One view as the refinement uses it: board plane, the board's returns, noise."""
+
+    name: str
+    board: BoardPlane | None
+    angle_deg: np.ndarray
+    range_mm: np.ndarray
+    sigma_range_mm: float
+    beams: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    candidates: list[Segment] = field(default_factory=list)
+    note: str = ""
+
+    @property
+    def points_mm(self) -> np.ndarray:
+        return scan_points(self.angle_deg[self.beams], self.range_mm[self.beams])
+
+
+def _pose(x: np.ndarray, R0: np.ndarray, T0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return Rotation.from_rotvec(x[:3]).as_matrix() @ R0, T0 + x[3:6]
+
+
+def _point_sigma(v: ViewData, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Range noise projected on the plane normal: ``sigma_r |n . R u|`` (u the beam direction),
+    floored at a quarter of ``sigma_r`` (grazing beams)."""
+    u = p / np.linalg.norm(p, axis=1, keepdims=True)
+    c = np.abs((np.column_stack([u, np.zeros(len(u))]) @ R.T) @ v.board.plane.normal)
+    return v.sigma_range_mm * np.maximum(c, 0.25)
+
+
+@dataclass(frozen=True)
+class Refined:
+    """Outcome of :func:`refine_extrinsics`: pose, the 6x6 information of ``(omega, T)``
+    (rotation vector rad, left-multiplied, camera frame; T mm) after marginalising the
+    board planes, and the noise scale (sqrt of the robust reduced chi-square)."""
+
+    R: np.ndarray
+    T: np.ndarray
+    information: np.ndarray
+    noise_scale: float
+    cost: float
+
+
+def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
+                      loss: str = "soft_l1", f_scale: float = 3.0) -> Refined:
+    """Robust maximum likelihood over the pose and every board plane (Zhang & Pless's
+    non-linear step, with the camera's plane noise): residuals
+    ``(n_i' . (R p + T) - d_i') / sigma_k`` for every return (``sigma_k`` from
+    :func:`_point_sigma`) and the prior ``L_i^-1 delta_i`` of each board plane's
+    perturbation ``delta_i = (b1 . dn, b2 . dn, dd)`` (``L_i L_i^T = cov_i``);
+    ``least_squares`` with ``loss`` (scale ``f_scale`` sigmas). The information of the
+    pose is ``J^T J`` with the planes marginalised (Schur complement)."""
+    used = [v for v in views if v.board is not None and len(v.beams) >= MIN_POINTS]
+    pts = [v.points_mm for v in used]
+    sig = [_point_sigma(v, R0, p) for v, p in zip(used, pts)]
+    chol = []
+    for v in used:
+        c = v.board.cov + 1e-12 * np.eye(3)
+        chol.append(np.linalg.cholesky(c))
+    m = len(used)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        R, T = _pose(x, R0, T0)
+        out = []
+        for k, v in enumerate(used):
+            dlt = x[6 + 3 * k: 9 + 3 * k]
+            n = v.board.plane.normal + v.board.basis @ dlt[:2]
+            nn = np.linalg.norm(n)
+            n = n / nn
+            d = (v.board.plane.d + dlt[2]) / nn
+            X = np.column_stack([pts[k], np.zeros(len(pts[k]))]) @ R.T + T
+            out.append((X @ n - d) / sig[k])
+            out.append(np.linalg.solve(chol[k], dlt))
+        return np.concatenate(out)
+
+    x0 = np.zeros(6 + 3 * m)
+    res = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac", method="trf",
+                        tr_solver="lsmr")
+    R, T = _pose(res.x, R0, T0)
+    J = res.jac
+    info = J.T @ J
+    A, B, C = info[:6, :6], info[:6, 6:], info[6:, 6:]
+    marg = A - B @ np.linalg.solve(C, B.T) if m else A
+    n_obs = sum(len(p) for p in pts)
+    dof = max(n_obs - 6, 1)
+    scale = float(np.sqrt(max(1.0, 2.0 * res.cost / dof)))
+    return Refined(R, T, 0.5 * (marg + marg.T), scale, float(res.cost))
+
+
+# ---------------------------------------------------------------------------
+# 5. uncertainty and degeneracy
+
+@dataclass(frozen=True)
+class Undetermined:
+    """A pose direction the views do not determine: ``kind`` "rotation" or "translation",
+    ``direction_cam`` its unit axis / direction in the camera frame, ``sigma_mm`` its
+    1-sigma (inf when exactly undetermined) as the displacement it causes at the board
+    points' RMS range."""
+
+    kind: str
+    direction_cam: np.ndarray
+    sigma_mm: float
+    vector6: np.ndarray
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """1-sigma per camera axis (``None`` where undetermined), the 6x6 covariance of
+    ``(omega rad, T mm)`` (pseudo-inverse over the determined directions) and the
+    undetermined directions."""
+
+    rotation_deg: list[float | None]
+    translation_mm: list[float | None]
+    covariance: np.ndarray
+    undetermined: list[Undetermined]
+    lever_mm: float
+
+
+def pose_uncertainty(ref: Refined, lever_mm: float, limit_mm: float = UNDETERMINED_MM
+                     ) -> Uncertainty:
+    """Eigen-analysis of the pose information, rotations scaled by ``lever_mm`` (the board
+    points' RMS range) so both kinds are mm: an eigen-direction whose 1-sigma exceeds
+    ``limit_mm`` is undetermined; an axis with a share (> 5 %) in one has sigma None."""
+    S = np.diag([lever_mm] * 3 + [1.0] * 3)
+    Si = np.linalg.inv(S)
+    info = Si @ ref.information @ Si
+    lam, V = np.linalg.eigh(info)
+    top = max(float(lam.max()), 1e-300)
+    sig = np.where(lam > 1e-12 * top, ref.noise_scale / np.sqrt(np.maximum(lam, 1e-300)), np.inf)
+    bad = sig > limit_mm
+    und = []
+    for k in np.flatnonzero(bad):
+        v = V[:, k]
+        rot, tr = v[:3], v[3:]
+        kind = "rotation" if np.linalg.norm(rot) >= np.linalg.norm(tr) else "translation"
+        axis = rot if kind == "rotation" else tr
+        axis = axis / np.linalg.norm(axis)
+        if axis[np.argmax(np.abs(axis))] < 0:
+            axis = -axis
+        und.append(Undetermined(kind, axis, float(sig[k]), v))
+    good = ~bad
+    cov_y = (V[:, good] * (sig[good] ** 2)) @ V[:, good].T
+    cov = Si @ cov_y @ Si  # y = S x  ->  cov_x = S^-1 cov_y S^-1: (omega rad, T mm)
+    share = np.sum(V[:, bad] ** 2, axis=1) if bad.any() else np.zeros(6)
+    sd = np.sqrt(np.diag(cov))
+    rot = [None if share[i] > 0.05 else float(np.degrees(sd[i])) for i in range(3)]
+    tr = [None if share[3 + i] > 0.05 else float(sd[3 + i]) for i in range(3)]
+    return Uncertainty(rot, tr, cov, und, lever_mm)
+
+
+def describe_degeneracy(planes: list[Plane], unc: Uncertainty) -> list[str]:
+    """Words for the undetermined directions, with the board geometry that explains them."""
+    out = []
+    if not unc.undetermined:
+        return out
+    N = np.array([p.normal for p in planes])
+    _, s, vt = np.linalg.svd(N)
+    why = ""
+    if len(planes) < MIN_VIEWS:
+        why = f"only {len(planes)} usable view(s) (each view fixes two of the six pose parameters)"
+    elif s[1] < 0.05 * s[0]:
+        why = ("every board is (nearly) parallel to the others (normals within "
+               f"{np.degrees(np.arcsin(min(1.0, s[1] / s[0]))):.1f} deg); tilt the board differently")
+    elif s[2] < 0.05 * s[0]:
+        u = vt[2] * np.sign(vt[2][np.argmax(np.abs(vt[2]))])
+        why = ("every board normal is perpendicular to camera-frame direction "
+               f"[{u[0]:.3f}, {u[1]:.3f}, {u[2]:.3f}] (e.g. every board vertical while the scan "
+               "plane is horizontal): positions along that direction and the scan plane's tilt "
+               "are not observed; tilt the board forwards/backwards in some views")
+    parts = []
+    for d in unc.undetermined:
+        v = d.direction_cam
+        sig = "infinite" if not np.isfinite(d.sigma_mm) else f"{d.sigma_mm:.0f} mm"
+        what = "translation along" if d.kind == "translation" else "rotation about"
+        parts.append(f"{what} camera-frame [{v[0]:.3f}, {v[1]:.3f}, {v[2]:.3f}] (1-sigma {sig})")
+    out.append("undetermined pose direction(s): " + "; ".join(parts)
+               + (f"; cause: {why}" if why else "") + "; their sigma is null")
+    return out
+
+
+# ---------------------------------------------------------------------------
+# the whole calibration
+
+@dataclass
+class PlanesResult:
+    """Outcome of :func:`calibrate_planes`."""
+
+    R: np.ndarray
+    T: np.ndarray
+    views: list[ViewData]
+    used: list[bool]
+    rms_mm: list[float | None]
+    uncertainty: Uncertainty
+    refined: Refined
+    warnings: list[str]
+    R_linear: np.ndarray
+    T_linear: np.ndarray
+
+    @property
+    def total_rms_mm(self) -> float:
+        res = [plane_residuals_mm(v, self.R, self.T) for v, u in zip(self.views, self.used) if u]
+        allr = np.concatenate(res) if res else np.zeros(0)
+        return float(np.sqrt(np.mean(allr ** 2))) if len(allr) else float("nan")
+
+    def to_dict(self) -> dict:
+        """The ``lidarcal-extrinsics/1`` document (see :func:`write_extrinsics`)."""
+        unc = self.uncertainty
+        return {
+            "format": EXTRINSICS_FORMAT,
+            "R": self.R.tolist(),
+            "T_mm": self.T.tolist(),
+            "sigma": {"rotation_deg": unc.rotation_deg, "translation_mm": unc.translation_mm},
+            "views": [{"name": v.name, "used": bool(u), "points": len(v.beams) if u else 0,
+                       "rms_mm": None if r is None else float(r),
+                       "range_noise_mm": float(v.sigma_range_mm),
+                       "board_plane": None if v.board is None else v.board.plane.to_dict(),
+                       "corner_noise_px": None if v.board is None else v.board.sigma_px,
+                       "beams": [int(b) for b in v.beams] if u else [],
+                       **({"note": v.note} if v.note else {})}
+                      for v, u, r in zip(self.views, self.used, self.rms_mm)],
+            "rms_mm": self.total_rms_mm,
+            "warnings": list(self.warnings),
+            "covariance": {"parameters": ["rot_x_rad", "rot_y_rad", "rot_z_rad", "T_x_mm",
+                                          "T_y_mm", "T_z_mm"],
+                           "matrix": unc.covariance.tolist(),
+                           "note": "rotation as a small rotation vector left-multiplying R, "
+                                   "camera frame; undetermined directions excluded"},
+            "undetermined": [{"kind": d.kind, "direction_cam": d.direction_cam.tolist(),
+                              "sigma_mm": None if not np.isfinite(d.sigma_mm) else d.sigma_mm}
+                             for d in unc.undetermined],
+            "noise_scale": self.refined.noise_scale,
+            "linear": {"R": self.R_linear.tolist(), "T_mm": self.T_linear.tolist()},
+        }
+
+
+def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Signed distances (mm) of a view's board returns, mapped by ``(R, T)``, to the board
+    plane measured by the camera."""
+    p = view.points_mm
+    X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
+    return view.board.plane.distance(X)
+
+
+def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int = MIN_POINTS
+                  ) -> list[ViewData]:
+    """Board plane (with covariance) and candidate scan segments of every view pair."""
+    from .dataset import read_image
+
+    views = []
+    for pr in pairs:
+        img = read_image(pr.image_path, camera.image_size)
+        found = find_board(img, board)
+        if np.count_nonzero(np.isfinite(pr.range_mm)) < MIN_POINTS:
+            raise DatasetError(pr.scan_path, f"fewer than {MIN_POINTS} returns; check the file")
+        sig = local_line_noise(pr.angle_deg, pr.range_mm)
+        v = ViewData(pr.name, None, pr.angle_deg, pr.range_mm, max(sig, 0.3))
+        if found is None:
+            v.note = (f"no {board.inner_corners[0]}x{board.inner_corners[1]} chessboard found in "
+                      f"{pr.image_path.name}")
+        else:
+            v.board = board_plane(camera, found[0], found[1])
+            v.candidates = scan_segments(pr.angle_deg, pr.range_mm, sig, min_points)
+        views.append(v)
+    return views
+
+
+def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UNDETERMINED_MM,
+                     where: str | Path = ".") -> PlanesResult:
+    """Zhang & Pless calibration of prepared views (see the module docstring for the steps).
+
+    Raises :class:`DatasetError` (naming ``where``) when fewer than three views have a board
+    and a board segment.
+    """
+    rng = np.random.default_rng(seed)
+    warnings: list[str] = []
+    with_board = [i for i, v in enumerate(views) if v.board is not None]
+    for v in views:
+        if v.board is None:
+            warnings.append(f"{v.name}: {v.note}; view not used")
+        elif v.board.sigma_px > 1.0:
+            warnings.append(f"{v.name}: chessboard corners fit their board with {v.board.sigma_px:.2f}"
+                            " px RMS (> 1 px); check the photo (blur, wrong pattern, bent board)")
+    if len(with_board) < MIN_VIEWS:
+        raise DatasetError(where, f"only {len(with_board)} view(s) show the chessboard; at least "
+                                  f"{MIN_VIEWS} views with differently tilted boards are needed")
+    sub = [views[i] for i in with_board]
+    tot = [float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2]))) for v in sub]
+    gates = [max(10.0 * t, 10.0) for t in tot]
+    choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
+                                   gates, rng)
+    chosen = [(v, v.candidates[c]) for v, c in zip(sub, choice) if c is not None]
+    if len(chosen) < MIN_VIEWS:
+        raise DatasetError(where, f"the scans of only {len(chosen)} view(s) agree on a board "
+                                  "segment; check that the scan plane crosses the board in every "
+                                  "view (and the pattern size), or add views")
+    R0, T0, _ = linear_extrinsics([s.points for _, s in chosen], [v.board.plane for v, _ in chosen])
+    R, T = R0, T0
+    seeds = {id(v): s.beams for v, s in chosen}
+    for v in sub:
+        v.beams = seeds.get(id(v), np.zeros(0, int))
+    ref = None
+    for factor in (6.0, 4.0):  # gate on the predicted plane and refine; then once more, tighter
+        for v, t in zip(sub, tot):
+            if id(v) in seeds:
+                v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T,
+                                            factor * t, seeds[id(v)])
+        ref = refine_extrinsics(sub, R0, T0)
+        R, T = ref.R, ref.T
+    # views outside the first consensus: gated on the final prediction, kept if they agree
+    for v, t in zip(sub, tot):
+        if id(v) not in seeds:
+            v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, 4.0 * t)
+    used, rms = [], []
+    for v in views:
+        ok = v.board is not None and len(v.beams) >= MIN_POINTS
+        r = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2))) if ok else None
+        used.append(ok)
+        rms.append(r)
+    if any(u and id(v) not in seeds for v, u in zip(views, used)):
+        ref = refine_extrinsics([v for v, u in zip(views, used) if u], R, T)
+        R, T = ref.R, ref.T
+    for k, v in enumerate(views):
+        if v.board is not None and not used[k]:
+            warnings.append(f"{v.name}: no board segment in the scan agrees with the board "
+                            "plane; view not used (does the scan plane cross the board?)")
+        if used[k]:
+            rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
+            expect = float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2])))
+            if rms[k] > 3.0 * expect + 1.0:
+                warnings.append(f"{v.name}: board returns are {rms[k]:.1f} mm RMS from the board "
+                                f"plane, > 3x the expected {expect:.1f} mm; check this view")
+    if ref.noise_scale > 3.0:
+        warnings.append(f"residuals are {ref.noise_scale:.1f}x the noise model (range noise and "
+                        "corner noise); the sigmas are scaled by it, but check for a bent board "
+                        "or a time offset between photo and scan")
+    pts = np.vstack([v.points_mm for v, u in zip(views, used) if u])
+    lever = float(np.sqrt(np.mean(np.sum(pts ** 2, axis=1))))
+    unc = pose_uncertainty(ref, lever, limit_mm)
+    warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
+    return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)
+
+
+def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
+               seed: int = 0, limit_mm: float = UNDETERMINED_MM) -> PlanesResult:
+    """``lidarcal planes``: read the view pairs and the camera, calibrate."""
+    import json
+
+    from .dataset import parse_camera
+    from .io.pairs import read_view_pairs
+
+    cpath = Path(camera_json)
+    if not cpath.is_file():
+        raise DatasetError(cpath, "missing camera file; expected JSON with K, dist, image_size")
+    try:
+        cam = parse_camera(json.loads(cpath.read_text(encoding="utf-8-sig")), cpath)
+    except json.JSONDecodeError as e:
+        raise DatasetError(cpath, f"not valid JSON ({e})") from None
+    pairs = read_view_pairs(folder)
+    views = prepare_views(pairs, cam, board)
+    res = calibrate_planes(views, seed=seed, limit_mm=limit_mm, where=folder)
+    res.camera = cam  # type: ignore[attr-defined]
+    res.pairs = pairs  # type: ignore[attr-defined]
+    return res
+
+
+def write_extrinsics(res: PlanesResult, out: str | Path, command: str | None = None) -> Path:
+    """Write ``OUT/extrinsics.json`` atomically; returns its path."""
+    out = Path(out)
+    doc = res.to_dict()
+    if command:
+        doc["provenance"] = {"command": command}
+    path = out / "extrinsics.json"
+    write_json_atomic(path, doc)
+    return path
+
+
+def leave_one_out(views: list[ViewData], result: PlanesResult, seed: int = 0) -> list[dict]:
+    """Calibrate on every used view but one; the held-out view's board returns (as chosen by
+    the full fit) are scored against its camera plane: ``{"name", "rms_mm", "in_sample_rms_mm"}``."""
+    import copy
+
+    out = []
+    used = [k for k, u in enumerate(result.used) if u]
+    for k in used:
+        others = [copy.copy(views[j]) for j in used if j != k]
+        for o in others:
+            o.beams = np.zeros(0, int)
+        r = calibrate_planes(others, seed=seed)
+        held = views[k]
+        res = plane_residuals_mm(held, r.R, r.T)
+        out.append({"name": held.name, "rms_mm": float(np.sqrt(np.mean(res ** 2))),
+                    "in_sample_rms_mm": result.rms_mm[k]})
+    return out
+
+
+# ---------------------------------------------------------------------------
+# figures
+
+def projection_figure(res: PlanesResult, k: int, image: np.ndarray | None = None):
+    """View ``k``'s scan drawn on its photo with the calibration (board returns ringed, the
+    pattern's outline one square beyond the outer corners in yellow)."""
+    from .board import board_outline_px
+    from .dataset import read_image
+    from .overlay import lidar_on_image
+
+    v = res.views[k]
+    pair = res.pairs[k]  # type: ignore[attr-defined]
+    img = image
+    if img is None:
+        img = cv2.imread(str(pair.image_path), cv2.IMREAD_COLOR)  # colour photo (BGR)
+        if img is None:
+            img = read_image(pair.image_path)
+    outline = None
+    if v.board is not None:
+        outline = board_outline_px(res.camera, v.board.R, v.board.T, v.board.board)  # type: ignore[attr-defined]
+    return lidar_on_image(img, res.camera, res.R, res.T, v.angle_deg, v.range_mm,  # type: ignore[attr-defined]
+                          highlight=v.beams if res.used[k] else None, outline_px=outline,
+                          title=f"{v.name}: scan on the photo")
+
+
+def write_projections(res: PlanesResult, out: str | Path) -> list[Path]:
+    """``OUT/projection_NAME.png`` for every view (see :func:`projection_figure`)."""
+    from .overlay import save_figure
+
+    paths = []
+    for k, v in enumerate(res.views):
+        paths.append(save_figure(projection_figure(res, k), Path(out) / f"projection_{v.name}.png"))
+    return paths
+
+
+def plot_board_segments(res: PlanesResult, cols: int = 4):
+    """Every scan in the LiDAR frame: all returns grey, the candidate segments thin, the
+    board's returns (used in the fit) bold, with the board plane's trace predicted by the
+    calibration."""
+    from .plots import _figure
+
+    n = len(res.views)
+    rows = int(np.ceil(n / cols))
+    fig = _figure(3.2 * cols, 3.0 * rows)
+    for k, v in enumerate(res.views):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        p = scan_points(v.angle_deg, v.range_mm)
+        ax.plot(p[:, 0], p[:, 1], ".", ms=1, color="0.7")
+        for s in v.candidates:
+            ax.plot(s.points[:, 0], s.points[:, 1], "-", lw=0.6, color="tab:blue", alpha=0.5)
+        if res.used[k]:
+            b = v.points_mm
+            ax.plot(b[:, 0], b[:, 1], ".", ms=2, color="tab:red")
+            # trace of the board plane in the scan plane: {p : n.(R p + T) = d}
+            n = res.R.T @ v.board.plane.normal
+            c = v.board.plane.d - v.board.plane.normal @ res.T
+            t = np.array([-n[1], n[0]]) / np.hypot(n[0], n[1])
+            p0 = n[:2] * c / (n[0] ** 2 + n[1] ** 2)
+            s = (b - p0) @ t
+            e = p0 + np.outer([s.min() - 200, s.max() + 200], t)
+            ax.plot(e[:, 0], e[:, 1], "--", color="k", lw=0.8)
+            lim = np.r_[b.min(0) - 600, b.max(0) + 600]
+            ax.set_xlim(lim[0], lim[2])
+            ax.set_ylim(lim[1], lim[3])
+        ax.plot(0, 0, "k+")
+        ax.set_aspect("equal")
+        ax.set_title(f"{v.name}: " + (f"{len(v.beams)} returns, {res.rms_mm[k]:.1f} mm RMS"
+                                      if res.used[k] else "not used"), fontsize=8)
+        ax.tick_params(labelsize=6)
+    return fig
+
+
+def plot_view_residuals(res: PlanesResult):
+    """Point-to-plane residuals (mm) of every used view against the beam index."""
+    from .plots import _figure
+
+    fig = _figure(7.0, 3.6)
+    ax = fig.add_subplot()
+    for k, v in enumerate(res.views):
+        if res.used[k]:
+            ax.plot(v.beams, plane_residuals_mm(v, res.R, res.T), ".", ms=2,
+                    label=f"{v.name} ({res.rms_mm[k]:.1f} mm)")
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("beam index")
+    ax.set_ylabel("point-to-plane residual (mm)")
+    ax.legend(fontsize=7, ncols=4)
+    return fig
