@@ -86,16 +86,30 @@ class BoardPlane:
         return np.sqrt(np.einsum("ij,jk,ik->i", g, self.cov, g))
 
 
-def find_board(image: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, BoardSpec] | None:
-    """Chessboard corners (N, 2) with the pattern either way round (8x5 = 5x8), or None."""
-    from .camera import detect_chessboard
+def find_board(image: np.ndarray, board: BoardSpec) -> list[tuple[np.ndarray, BoardSpec]]:
+    """Chessboard corner sets (N, 2) with the pattern either way round (8x5 = 5x8): the
+    package's finder (:func:`lidarcal.camera.detect_chessboard`) and OpenCV's
+    ``findChessboardCornersSB`` in its accuracy mode (``CALIB_CB_ACCURACY``, no
+    ``cornerSubPix``). On the real TAPAS photos, whose boards carry fiducial rings beside
+    the pattern, the latter fits the board model with 0.17-0.50 px against 0.6-2.2 px;
+    :func:`prepare_views` keeps, per view, the set that fits better. Empty if neither
+    finds the board."""
+    from .camera import _gray, detect_chessboard
 
+    gray = _gray(image)
     c, r = board.inner_corners
     for size in ((c, r), (r, c)) if c != r else ((c, r),):
-        corners = detect_chessboard(image, size)
+        found = []
+        corners = detect_chessboard(gray, size)
         if corners is not None:
-            return corners, BoardSpec(size, board.square_mm)
-    return None
+            found.append((corners, BoardSpec(size, board.square_mm)))
+        ok, sb = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_ACCURACY
+                                             | cv2.CALIB_CB_EXHAUSTIVE)
+        if ok and sb is not None:
+            found.append((sb.reshape(-1, 2).astype(np.float64), BoardSpec(size, board.square_mm)))
+        if found:
+            return found
+    return []
 
 
 def board_plane(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec) -> BoardPlane:
@@ -151,18 +165,55 @@ def _design(points_m: np.ndarray, normal: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _Moments:
-    """Normal-equation moments of one candidate segment under one view's plane (metres)."""
+    """Sums over one candidate's points under one view's plane (metres): ``N``, ``b``, ``dd`` of
+    the normal equations of ``H``, and ``flat`` = (N, b, C1, C2, C3, v) flattened, where
+    ``C1 = c n n^T``, ``C2 = (sum x) n n^T``, ``C3 = (sum y) n n^T``, ``v = c d n`` (``c`` the
+    count) give ``T`` for a fixed ``R``: ``C1 T = v - C2 r1 - C3 r2``. Sums of ``flat`` over
+    candidates are the moments of their union."""
 
     N: np.ndarray  # (9, 9)
     b: np.ndarray  # (9,)
     dd: float
     n: int
+    flat: np.ndarray  # (120,)
 
 
 def _moments(points_mm: np.ndarray, plane: Plane) -> _Moments:
-    A = _design(points_mm / 1000.0, plane.normal)
+    pm = points_mm / 1000.0
+    A = _design(pm, plane.normal)
     d = np.full(len(A), plane.d / 1000.0)
-    return _Moments(A.T @ A, A.T @ d, float(d @ d), len(A))
+    nn = np.outer(plane.normal, plane.normal)
+    c = float(len(pm))
+    sx, sy = pm.sum(0)
+    N, b = A.T @ A, A.T @ d
+    flat = np.concatenate([N.ravel(), b, (c * nn).ravel(), (sx * nn).ravel(), (sy * nn).ravel(),
+                           c * plane.d / 1000.0 * plane.normal])
+    return _Moments(N, b, float(d @ d), len(A), flat)
+
+
+def _hypotheses(flat: np.ndarray) -> np.ndarray:
+    """Rigid ``vec(H)`` (K, 9) from summed moments (K, 120): the linear ``H`` (Zhang-Pless),
+    ``R`` the nearest rotation to ``[h1 h2 h1 x h2]`` (batched SVD), then ``T`` re-solved with
+    ``R`` fixed. A wrong set of segments can fit the nine free entries of ``H``; it rarely
+    fits a rotation. (Keeping ``h3`` as ``T`` is not enough: with few views the free ``H``
+    trades its rotation part against ``h3``.)"""
+    K = len(flat)
+    N = flat[:, :81].reshape(K, 9, 9)
+    b = flat[:, 81:90]
+    C1, C2, C3 = (flat[:, 90 + 9 * j: 99 + 9 * j].reshape(K, 3, 3) for j in range(3))
+    v = flat[:, 117:120]
+    h = _solve_h(N, b)
+    Hm = h.reshape(-1, 3, 3).transpose(0, 2, 1)  # columns h1, h2, h3
+    M = np.stack([Hm[:, :, 0], Hm[:, :, 1], np.cross(Hm[:, :, 0], Hm[:, :, 1])], axis=2)
+    U, _, Vt = np.linalg.svd(M)
+    D = np.ones((K, 3))
+    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = (U * D[:, None, :]) @ Vt
+    r1, r2 = R[:, :, 0], R[:, :, 1]
+    rhs = v - np.einsum("kij,kj->ki", C2, r1) - np.einsum("kij,kj->ki", C3, r2)
+    tr = np.trace(C1, axis1=1, axis2=2)[:, None, None]
+    T = np.linalg.solve(C1 + 1e-10 * tr * np.eye(3), rhs[..., None])[..., 0]
+    return np.concatenate([r1, r2, T], axis=1)
 
 
 def _solve_h(N: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -176,21 +227,6 @@ def _rms_under(h: np.ndarray, m: _Moments) -> np.ndarray:
     """RMS (mm) of ``n^T H p - d`` over a candidate's points, for hypotheses ``h`` (K, 9)."""
     sse = np.einsum("ki,ij,kj->k", h, m.N, h) - 2 * h @ m.b + m.dd
     return 1000.0 * np.sqrt(np.maximum(sse, 0.0) / m.n)
-
-
-def _rigid_h(h: np.ndarray) -> np.ndarray:
-    """Hypotheses ``vec(H)`` (K, 9) made rigid: ``[r1 r2]`` from the nearest rotation to
-    ``[h1 h2 h1 x h2]`` (SVD, batched), ``h3`` kept. A wrong set of segments can fit the nine
-    free entries of ``H``; it rarely fits a rotation."""
-    Hm = h.reshape(-1, 3, 3).transpose(0, 2, 1)  # columns h1, h2, h3
-    M = np.stack([Hm[:, :, 0], Hm[:, :, 1], np.cross(Hm[:, :, 0], Hm[:, :, 1])], axis=2)
-    U, _, Vt = np.linalg.svd(M)
-    det = np.sign(np.linalg.det(U @ Vt))
-    D = np.ones((len(h), 3))
-    D[:, 2] = det
-    R = (U * D[:, None, :]) @ Vt
-    out = np.concatenate([R[:, :, 0], R[:, :, 1], Hm[:, :, 2]], axis=1)
-    return out
 
 
 def select_board_segments(candidates: list[list[Segment]], planes: list[Plane],
@@ -216,22 +252,16 @@ def select_board_segments(candidates: list[list[Segment]], planes: list[Plane],
         return [None] * n
     k = min(5, len(views))
     total = int(np.prod([float(len(mom[i])) for i in views]))
-    H = []
     if total <= hypotheses and len(views) <= 6:  # small problems: every combination
         import itertools
-        combos = list(itertools.product(*[range(len(mom[i])) for i in views]))
-        N = np.stack([sum(mom[i][c].N for i, c in zip(views, cb)) for cb in combos])
-        b = np.stack([sum(mom[i][c].b for i, c in zip(views, cb)) for cb in combos])
-        H = _solve_h(N, b)
+        combos = itertools.product(*[range(len(mom[i])) for i in views])
+        flat = np.stack([sum(mom[i][c].flat for i, c in zip(views, cb)) for cb in combos])
     else:
-        Ns, bs = [], []
-        for _ in range(hypotheses):
+        flat = np.empty((hypotheses, 120))
+        for h in range(hypotheses):
             pick = rng.choice(views, size=k, replace=False)
-            cs = [mom[i][rng.integers(len(mom[i]))] for i in pick]
-            Ns.append(sum(c.N for c in cs))
-            bs.append(sum(c.b for c in cs))
-        H = _solve_h(np.stack(Ns), np.stack(bs))
-    H = _rigid_h(H)
+            flat[h] = sum(mom[i][rng.integers(len(mom[i]))].flat for i in pick)
+    H = _hypotheses(flat)
     best_count = np.zeros(len(H), int)
     best_sum = np.zeros(len(H))
     choice = np.full((len(H), n), -1)
@@ -252,7 +282,8 @@ def linear_extrinsics(points_mm: list[np.ndarray], planes: list[Plane]
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Zhang & Pless's linear solution: ``H`` by least squares over every point-on-plane
     constraint ``n_i^T H (x, y, 1)^T = d_i``, ``R`` = nearest rotation to
-    ``[h1 h2 h1 x h2]`` (SVD), ``T = h3``. Returns ``(R, T_mm, singular values of the
+    ``[h1 h2 h1 x h2]`` (SVD), then ``T`` by least squares with ``R`` fixed (better than
+    ``h3`` when few views leave ``H`` loosely determined). Returns ``(R, T_mm, singular values of the
     design)``; small singular values flag an undetermined ``H``."""
     A = np.vstack([_design(p / 1000.0, pl.normal) for p, pl in zip(points_mm, planes)])
     d = np.concatenate([np.full(len(p), pl.d / 1000.0) for p, pl in zip(points_mm, planes)])
@@ -264,7 +295,12 @@ def linear_extrinsics(points_mm: list[np.ndarray], planes: list[Plane]
         R = np.eye(3)
     else:
         R, _ = nearest_rotation(np.column_stack([h1, h2, np.cross(h1, h2)]))
-    return R, 1000.0 * Hm[:, 2], s
+    # T again with R fixed: n_i . T = d_i - n_i . R p (the free H trades h3 against h1, h2)
+    An = np.vstack([np.tile(pl.normal, (len(p), 1)) for p, pl in zip(points_mm, planes)])
+    P3 = np.vstack([np.column_stack([p, np.zeros(len(p))]) for p in points_mm])
+    rhs = 1000.0 * d - np.einsum("ij,ij->i", An, P3 @ R.T)
+    T, *_ = np.linalg.lstsq(An, rhs, rcond=1e-10)
+    return R, T, s
 
 
 # ---------------------------------------------------------------------------
@@ -339,12 +375,25 @@ class Refined:
     cost: float
 
 
+def _quadratic_under(r: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
+    """Prior residuals that stay Gaussian under ``least_squares``' robust loss (which applies to
+    every residual): for ``soft_l1``, ``r sqrt(1 + r^2 / (4 f^2))`` has ``f^2 rho(r'^2/f^2) = r^2``
+    exactly. Without this a robust loss would cap the board-plane priors and let the planes
+    drift to fit the scan."""
+    if loss == "linear":
+        return r
+    if loss != "soft_l1":
+        raise ValueError(f"loss must be 'soft_l1' or 'linear', got {loss!r}")
+    return r * np.sqrt(1.0 + r * r / (4.0 * f_scale ** 2))
+
+
 def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
                       loss: str = "soft_l1", f_scale: float = 3.0) -> Refined:
     """Robust maximum likelihood over the pose and every board plane (Zhang & Pless's
     non-linear step, with the camera's plane noise): residuals
     ``(n_i' . (R p + T) - d_i') / sigma_k`` for every return (``sigma_k`` from
-    :func:`_point_sigma`) and the prior ``L_i^-1 delta_i`` of each board plane's
+    :func:`_point_sigma`; robust ``loss``) and the Gaussian prior ``L_i^-1 delta_i`` (kept
+    quadratic, :func:`_quadratic_under`) of each board plane's
     perturbation ``delta_i = (b1 . dn, b2 . dn, dd)`` (``L_i L_i^T = cov_i``);
     ``least_squares`` with ``loss`` (scale ``f_scale`` sigmas). The information of the
     pose is ``J^T J`` with the planes marginalised (Schur complement)."""
@@ -368,7 +417,7 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
             d = (v.board.plane.d + dlt[2]) / nn
             X = np.column_stack([pts[k], np.zeros(len(pts[k]))]) @ R.T + T
             out.append((X @ n - d) / sig[k])
-            out.append(np.linalg.solve(chol[k], dlt))
+            out.append(_quadratic_under(np.linalg.solve(chol[k], dlt), loss, f_scale))
         return np.concatenate(out)
 
     x0 = np.zeros(6 + 3 * m)
@@ -552,11 +601,11 @@ def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int 
             raise DatasetError(pr.scan_path, f"fewer than {MIN_POINTS} returns; check the file")
         sig = local_line_noise(pr.angle_deg, pr.range_mm)
         v = ViewData(pr.name, None, pr.angle_deg, pr.range_mm, max(sig, 0.3))
-        if found is None:
+        if not found:
             v.note = (f"no {board.inner_corners[0]}x{board.inner_corners[1]} chessboard found in "
                       f"{pr.image_path.name}")
-        else:
-            v.board = board_plane(camera, found[0], found[1])
+        else:  # the corner set that fits the board model best
+            v.board = min((board_plane(camera, c, b) for c, b in found), key=lambda bp: bp.sigma_px)
             v.candidates = scan_segments(pr.angle_deg, pr.range_mm, sig, min_points)
         views.append(v)
     return views
@@ -596,13 +645,14 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     seeds = {id(v): s.beams for v, s in chosen}
     for v in sub:
         v.beams = seeds.get(id(v), np.zeros(0, int))
-    ref = None
+    ref = refine_extrinsics(sub, R0, T0)  # on the consensus segments alone
+    R, T = ref.R, ref.T
     for factor in (6.0, 4.0):  # gate on the predicted plane and refine; then once more, tighter
         for v, t in zip(sub, tot):
             if id(v) in seeds:
                 v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T,
                                             factor * t, seeds[id(v)])
-        ref = refine_extrinsics(sub, R0, T0)
+        ref = refine_extrinsics(sub, R, T)
         R, T = ref.R, ref.T
     # views outside the first consensus: gated on the final prediction, kept if they agree
     for v, t in zip(sub, tot):
