@@ -51,6 +51,9 @@ EXTRINSICS_FORMAT = "lidarcal-extrinsics/1"
 #: A pose direction whose 1-sigma exceeds this (mm; rotations count as the displacement they
 #: cause at the board points' RMS range) is reported as undetermined, its sigma as null.
 UNDETERMINED_MM = 50.0
+#: Boards count as all parallel when the second singular value of their stacked normals is below
+#: this share of the first (about 3 deg of spread).
+PARALLEL_LIMIT = 0.05
 #: Views needed at all (each view constrains two of the six pose parameters).
 MIN_VIEWS = 3
 _MAD = 1.4826
@@ -211,16 +214,29 @@ def _hypotheses(flat: np.ndarray) -> np.ndarray:
     R = (U * D[:, None, :]) @ Vt
     r1, r2 = R[:, :, 0], R[:, :, 1]
     rhs = v - np.einsum("kij,kj->ki", C2, r1) - np.einsum("kij,kj->ki", C3, r2)
-    tr = np.trace(C1, axis1=1, axis2=2)[:, None, None]
-    T = np.linalg.solve(C1 + 1e-10 * tr * np.eye(3), rhs[..., None])[..., 0]
+    T = _psolve(C1, rhs)
     return np.concatenate([r1, r2, T], axis=1)
 
 
 def _solve_h(N: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Least-squares ``vec(H)`` from summed moments (batched; a tiny ridge keeps rank-deficient
     sets, e.g. parallel boards, solvable: their null space is left at zero)."""
-    tr = np.trace(N, axis1=-2, axis2=-1)[..., None, None]
-    return np.linalg.solve(N + 1e-10 * tr * np.eye(9), b[..., None])[..., 0]
+    return _psolve(N, b)
+
+
+#: Relative eigenvalue below which a direction of the hypotheses' normal equations counts as
+#: unobserved and is left at zero (board normals from real corners scatter by ~1e-3 rad, so an
+#: unobserved direction shows up at ~1e-6 relative).
+_RCOND = 1e-5
+
+
+def _psolve(N: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Minimum-norm solution of symmetric ``N x = b`` (batched), eigenvalues below ``_RCOND``
+    of the largest dropped."""
+    lam, V = np.linalg.eigh(N)
+    keep = lam > _RCOND * lam[..., -1:]
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    return np.einsum("...ij,...j,...kj,...k->...i", V, inv, V, b)
 
 
 def _rms_under(h: np.ndarray, m: _Moments) -> np.ndarray:
@@ -287,7 +303,7 @@ def linear_extrinsics(points_mm: list[np.ndarray], planes: list[Plane]
     design)``; small singular values flag an undetermined ``H``."""
     A = np.vstack([_design(p / 1000.0, pl.normal) for p, pl in zip(points_mm, planes)])
     d = np.concatenate([np.full(len(p), pl.d / 1000.0) for p, pl in zip(points_mm, planes)])
-    h, *_ = np.linalg.lstsq(A, d, rcond=1e-10)
+    h = _psolve(A.T @ A, A.T @ d)
     s = np.linalg.svd(A, compute_uv=False)
     Hm = h.reshape(3, 3, order="F")
     h1, h2 = Hm[:, 0], Hm[:, 1]
@@ -299,7 +315,7 @@ def linear_extrinsics(points_mm: list[np.ndarray], planes: list[Plane]
     An = np.vstack([np.tile(pl.normal, (len(p), 1)) for p, pl in zip(points_mm, planes)])
     P3 = np.vstack([np.column_stack([p, np.zeros(len(p))]) for p in points_mm])
     rhs = 1000.0 * d - np.einsum("ij,ij->i", An, P3 @ R.T)
-    T, *_ = np.linalg.lstsq(An, rhs, rcond=1e-10)
+    T = _psolve(An.T @ An, An.T @ rhs)
     return R, T, s
 
 
@@ -387,8 +403,16 @@ def _quadratic_under(r: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
     return r * np.sqrt(1.0 + r * r / (4.0 * f_scale ** 2))
 
 
+#: Weak priors on the pose's change from its start (rad, mm): they only keep directions the
+#: views cannot see bounded; such directions come out with a 1-sigma near these values, far
+#: above :data:`UNDETERMINED_MM`, and are reported as undetermined.
+WEAK_PRIOR = (0.1, 500.0)
+
+
 def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
-                      loss: str = "soft_l1", f_scale: float = 3.0) -> Refined:
+                      loss: str = "soft_l1", f_scale: float = 3.0,
+                      anchor: tuple[np.ndarray, np.ndarray] | None = None,
+                      fixed: list[np.ndarray] = (), lever_mm: float = 1000.0) -> Refined:
     """Robust maximum likelihood over the pose and every board plane (Zhang & Pless's
     non-linear step, with the camera's plane noise): residuals
     ``(n_i' . (R p + T) - d_i') / sigma_k`` for every return (``sigma_k`` from
@@ -396,7 +420,25 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
     quadratic, :func:`_quadratic_under`) of each board plane's
     perturbation ``delta_i = (b1 . dn, b2 . dn, dd)`` (``L_i L_i^T = cov_i``);
     ``least_squares`` with ``loss`` (scale ``f_scale`` sigmas). The information of the
-    pose is ``J^T J`` with the planes marginalised (Schur complement)."""
+    pose is ``J^T J`` with the planes marginalised (Schur complement). A weak prior
+    (:data:`WEAK_PRIOR`) ties the pose to ``anchor`` (default: the start), so directions the
+    views do not see stay there instead of drifting with the noise. ``fixed`` pose directions
+    (6-vectors of ``(omega, dT)``, e.g. :func:`unobservable_directions`) are held at the start:
+    the pose moves only in their complement (orthogonal with rotations scaled by
+    ``lever_mm``), and the returned information is zero along them."""
+    S = np.diag([lever_mm] * 3 + [1.0] * 3)
+    if len(fixed):
+        Q, _ = np.linalg.qr(np.array([S @ f for f in fixed]).T)
+        U, _, _ = np.linalg.svd(np.eye(6) - Q @ Q.T)
+        Bc = U[:, :6 - Q.shape[1]]
+    else:
+        Bc = np.eye(6)
+    kp = Bc.shape[1]
+    Si = np.linalg.inv(S)
+
+    def pose6(x: np.ndarray) -> np.ndarray:
+        return Si @ (Bc @ x[:kp])
+
     used = [v for v in views if v.board is not None and len(v.beams) >= MIN_POINTS]
     pts = [v.points_mm for v in used]
     sig = [_point_sigma(v, R0, p) for v, p in zip(used, pts)]
@@ -407,10 +449,10 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
     m = len(used)
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        R, T = _pose(x, R0, T0)
+        R, T = _pose(pose6(x), R0, T0)
         out = []
         for k, v in enumerate(used):
-            dlt = x[6 + 3 * k: 9 + 3 * k]
+            dlt = x[kp + 3 * k: kp + 3 + 3 * k]
             n = v.board.plane.normal + v.board.basis @ dlt[:2]
             nn = np.linalg.norm(n)
             n = n / nn
@@ -418,16 +460,22 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
             X = np.column_stack([pts[k], np.zeros(len(pts[k]))]) @ R.T + T
             out.append((X @ n - d) / sig[k])
             out.append(_quadratic_under(np.linalg.solve(chol[k], dlt), loss, f_scale))
+        dev = np.concatenate([Rotation.from_matrix(R @ Ra.T).as_rotvec(), T - Ta])
+        out.append(_quadratic_under(dev / np.repeat(WEAK_PRIOR, 3), loss, f_scale))
         return np.concatenate(out)
 
-    x0 = np.zeros(6 + 3 * m)
+    if m == 0:
+        raise ValueError("no view with board returns to refine on")
+    Ra, Ta = (R0, T0) if anchor is None else anchor
+    x0 = np.zeros(kp + 3 * m)
     res = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac", method="trf",
                         tr_solver="lsmr")
-    R, T = _pose(res.x, R0, T0)
+    R, T = _pose(pose6(res.x), R0, T0)
     J = res.jac
     info = J.T @ J
-    A, B, C = info[:6, :6], info[:6, 6:], info[6:, 6:]
-    marg = A - B @ np.linalg.solve(C, B.T) if m else A
+    A, B, C = info[:kp, :kp], info[:kp, kp:], info[kp:, kp:]
+    marg_z = A - B @ np.linalg.solve(C, B.T)
+    marg = S @ Bc @ marg_z @ Bc.T @ S  # information of (omega, T): y = S x = Bc z
     n_obs = sum(len(p) for p in pts)
     dof = max(n_obs - 6, 1)
     scale = float(np.sqrt(max(1.0, 2.0 * res.cost / dof)))
@@ -463,14 +511,41 @@ class Uncertainty:
     lever_mm: float
 
 
-def pose_uncertainty(ref: Refined, lever_mm: float, limit_mm: float = UNDETERMINED_MM
-                     ) -> Uncertainty:
+def unobservable_directions(normals: np.ndarray, R: np.ndarray, T: np.ndarray,
+                            max_tilt_deg: float = 30.0) -> list[np.ndarray]:
+    """Pose directions ``(omega, dT)`` (6-vectors) the geometry cannot see when every board normal
+    is perpendicular to one direction ``u`` (smallest singular vector, below
+    :data:`PARALLEL_LIMIT`): the translation along ``u`` always; and while the scan plane's normal
+    is within ``max_tilt_deg`` of ``u`` (every board vertical, scan plane horizontal), the
+    rotations about the LiDAR's centre about both axes perpendicular to ``u``,
+    ``(a, -a x T)``. To first order these change no residual at the exact degenerate pose but
+    become weakly (and wrongly) visible once the estimate has drifted along them, so they are
+    named from the geometry, not from the information matrix."""
+    _, sv, vt = np.linalg.svd(np.asarray(normals, float))
+    if len(sv) < 3 or sv[2] >= PARALLEL_LIMIT * sv[0]:
+        return []
+    u = vt[2]
+    out = [np.concatenate([np.zeros(3), u])]
+    if abs(R[:, 2] @ u) >= np.cos(np.radians(max_tilt_deg)):
+        a = plane_basis(u)
+        out += [np.concatenate([a[k], -np.cross(a[k], T)]) for k in range(2)]
+    return out
+
+
+def pose_uncertainty(ref: Refined, lever_mm: float, limit_mm: float = UNDETERMINED_MM,
+                     unobservable: list[np.ndarray] = ()) -> Uncertainty:
     """Eigen-analysis of the pose information, rotations scaled by ``lever_mm`` (the board
     points' RMS range) so both kinds are mm: an eigen-direction whose 1-sigma exceeds
-    ``limit_mm`` is undetermined; an axis with a share (> 5 %) in one has sigma None."""
+    ``limit_mm`` is undetermined; an axis with a share (> 5 %) in one has sigma None.
+    ``unobservable`` directions (from :func:`unobservable_directions`) are removed from the
+    information first, so they come out undetermined."""
     S = np.diag([lever_mm] * 3 + [1.0] * 3)
     Si = np.linalg.inv(S)
     info = Si @ ref.information @ Si
+    if len(unobservable):  # project the named directions (scaled coordinates) out
+        Q, _ = np.linalg.qr(np.array([S @ v for v in unobservable]).T)
+        Pm = np.eye(6) - Q @ Q.T
+        info = Pm @ info @ Pm
     lam, V = np.linalg.eigh(info)
     top = max(float(lam.max()), 1e-300)
     sig = np.where(lam > 1e-12 * top, ref.noise_scale / np.sqrt(np.maximum(lam, 1e-300)), np.inf)
@@ -631,6 +706,13 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
         raise DatasetError(where, f"only {len(with_board)} view(s) show the chessboard; at least "
                                   f"{MIN_VIEWS} views with differently tilted boards are needed")
     sub = [views[i] for i in with_board]
+    sv = np.linalg.svd(np.array([v.board.plane.normal for v in sub]), compute_uv=False)
+    if sv[1] < PARALLEL_LIMIT * sv[0]:
+        raise DatasetError(where, "every board is parallel to the others (normals within "
+                                  f"{np.degrees(np.arcsin(min(1.0, sv[1] / sv[0]))):.1f} deg): "
+                                  "the LiDAR's position in the boards' plane and its rotation about "
+                                  "their normal are undetermined; tilt the board differently in "
+                                  "some views")
     tot = [float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2]))) for v in sub]
     gates = [max(10.0 * t, 10.0) for t in tot]
     choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
@@ -652,20 +734,28 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
             if id(v) in seeds:
                 v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T,
                                             factor * t, seeds[id(v)])
-        ref = refine_extrinsics(sub, R, T)
+        ref = refine_extrinsics(sub, R, T, anchor=(R0, T0))
         R, T = ref.R, ref.T
     # views outside the first consensus: gated on the final prediction, kept if they agree
     for v, t in zip(sub, tot):
         if id(v) not in seeds:
             v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, 4.0 * t)
+            if len(v.beams) >= MIN_POINTS and np.sqrt(np.mean(
+                    plane_residuals_mm(v, R, T) ** 2)) > 3.0 * t + 1.0:
+                v.beams = np.zeros(0, int)
     used, rms = [], []
     for v in views:
         ok = v.board is not None and len(v.beams) >= MIN_POINTS
         r = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2))) if ok else None
         used.append(ok)
         rms.append(r)
+    if sum(used) < MIN_VIEWS:
+        raise DatasetError(where, f"only {sum(used)} view(s) have board returns that agree with "
+                                  "their board plane; check that the scan plane crosses the board "
+                                  "in every view, or add views")
     if any(u and id(v) not in seeds for v, u in zip(views, used)):
-        ref = refine_extrinsics([v for v, u in zip(views, used) if u], R, T)
+        ref = refine_extrinsics([v for v, u in zip(views, used) if u], R, T,
+                                anchor=(R0, T0))
         R, T = ref.R, ref.T
     for k, v in enumerate(views):
         if v.board is not None and not used[k]:
@@ -683,7 +773,19 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                         "or a time offset between photo and scan")
     pts = np.vstack([v.points_mm for v, u in zip(views, used) if u])
     lever = float(np.sqrt(np.mean(np.sum(pts ** 2, axis=1))))
-    unc = pose_uncertainty(ref, lever, limit_mm)
+    normals = np.array([v.board.plane.normal for v, u in zip(views, used) if u])
+    held = unobservable_directions(normals, R, T)
+    if held:  # refit with them held at the linear start (which leaves them at their minimum norm)
+        ref = refine_extrinsics([v for v, u in zip(views, used) if u], R0, T0,
+                                fixed=unobservable_directions(normals, R0, T0), lever_mm=lever)
+        R, T = ref.R, ref.T
+        warnings.append("the pose is given with its undetermined directions held at the linear "
+                        "solution's minimum-norm values; the determined part is conditional on "
+                        "them")
+        for k, v in enumerate(views):
+            if used[k]:
+                rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
+    unc = pose_uncertainty(ref, lever, limit_mm, held)
     warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
     return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)
 
