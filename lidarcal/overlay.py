@@ -44,10 +44,12 @@ def project_returns(camera: CameraModel, R: np.ndarray, T: np.ndarray, angle_deg
 def lidar_on_image(image: np.ndarray, camera: CameraModel, R: np.ndarray, T: np.ndarray,
                    angle_deg: np.ndarray, range_mm: np.ndarray,
                    highlight: np.ndarray | None = None, outline_px: np.ndarray | None = None,
-                   title: str = "LiDAR returns on the camera image") -> Figure:
+                   title: str = "LiDAR returns on the camera image",
+                   point_size: float = 4.0) -> Figure:
     """The scan drawn on the photo: every return coloured by its range (mm), the
     ``highlight`` returns (beam indices or a boolean mask, e.g. the board segment) ringed
-    in red; ``outline_px`` (M, 2), optional, is a polygon (e.g. the board's outline).
+    in red; ``outline_px`` (M, 2), optional, is a polygon (e.g. the board's outline);
+    ``point_size`` in points^2.
 
     ``R``, ``T``: the LiDAR pose, ``X_cam = R X_lidar + T`` (mm).
     """
@@ -62,7 +64,7 @@ def lidar_on_image(image: np.ndarray, camera: CameraModel, R: np.ndarray, T: np.
         o = np.asarray(outline_px, float)
         ax.plot(np.r_[o[:, 0], o[:1, 0]], np.r_[o[:, 1], o[:1, 1]], "-", color="yellow", lw=1,
                 label="board outline")
-    sc = ax.scatter(px[ok, 0], px[ok, 1], c=rng[ok], s=4, cmap="turbo", lw=0)
+    sc = ax.scatter(px[ok, 0], px[ok, 1], c=rng[ok], s=point_size, cmap="turbo", lw=0)
     if highlight is not None:
         hl = np.zeros(len(rng), bool)
         hl[np.asarray(highlight)] = True
@@ -95,7 +97,8 @@ def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLi
                         out_png: str | os.PathLike | None = None) -> Figure:
     """A turntable dataset's scan at position ``index`` drawn on its stripe image with a
     ``calibration.json``: the pose at the position's turntable angle,
-    ``lidarcal.load_calibration(path).pose(psi)``. Returns the figure; writes it to
+    ``lidarcal.load_calibration(path).pose(psi)``; the background is the stripe image in red
+    over the dimmed ``board.png``. Returns the figure; writes it to
     ``out_png`` when given. The laser's stripe in the image and the projected returns
     must coincide when the calibration is right.
     """
@@ -111,8 +114,12 @@ def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLi
     cal = load_calibration(calibration)
     pose = cal.pose(p.psi_deg)
     ang, rng = read_scan(p.scan, ds.lidar)
-    img_path = p.stripe_image if Path(p.stripe_image).is_file() else ds.board_image
-    img = read_image(img_path, ds.image_size, colour="max")
+    img_path = p.stripe_image
+    stripe = read_image(img_path, ds.image_size, colour="max")
+    img = np.repeat(stripe[..., None], 3, axis=2)  # the stripe in red over the dimmed board photo
+    if ds.board_image.is_file():
+        board = (0.5 * read_image(ds.board_image, ds.image_size)).astype(np.uint8)
+        img = np.stack([board, board, np.maximum(board, stripe)], axis=2)
     camera = ds.camera
     if isinstance(cal.data.get("camera"), dict) and "K" in cal.data["camera"]:
         from .dataset import parse_camera
@@ -123,8 +130,7 @@ def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLi
 
         camera, _ = camera_for(ds)
     fig = lidar_on_image(img, camera, pose.R, pose.T, ang, rng,
-                         title=f"position {index} (psi {p.psi_deg:g} deg): scan on "
-                               f"{Path(img_path).name}")
+                         title=f"position {index}, psi {p.psi_deg:g} deg", point_size=0.5)
     if out_png is not None:
         save_figure(fig, out_png)
     return fig

@@ -824,14 +824,18 @@ def write_extrinsics(res: PlanesResult, out: str | Path, command: str | None = N
     return path
 
 
-def leave_one_out(views: list[ViewData], result: PlanesResult, seed: int = 0) -> list[dict]:
+def leave_one_out(views: list[ViewData], result: PlanesResult, seed: int = 0,
+                  names: list[str] | None = None) -> list[dict]:
     """Calibrate on every used view but one; the held-out view's board returns (as chosen by
-    the full fit) are scored against its camera plane: ``{"name", "rms_mm", "in_sample_rms_mm"}``."""
+    the full fit) are scored against its camera plane: ``{"name", "rms_mm", "in_sample_rms_mm"}``
+    per held-out view (all used views, or those in ``names``)."""
     import copy
 
     out = []
     used = [k for k, u in enumerate(result.used) if u]
     for k in used:
+        if names is not None and views[k].name not in names:
+            continue
         others = [copy.copy(views[j]) for j in used if j != k]
         for o in others:
             o.beams = np.zeros(0, int)
