@@ -34,7 +34,7 @@ degrees at the edges, radians inside.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -54,6 +54,9 @@ UNDETERMINED_MM = 50.0
 #: Boards count as all parallel when the second singular value of their stacked normals is below
 #: this share of the first (about 3 deg of spread).
 PARALLEL_LIMIT = 0.05
+#: Views needed to cross-check the board segments (the linear H has nine unknowns, each view
+#: gives two constraints).
+MIN_VIEWS_CONSENSUS = 5
 #: Views needed at all (each view constrains two of the six pose parameters).
 MIN_VIEWS = 3
 _MAD = 1.4826
@@ -230,11 +233,11 @@ def _solve_h(N: np.ndarray, b: np.ndarray) -> np.ndarray:
 _RCOND = 1e-5
 
 
-def _psolve(N: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Minimum-norm solution of symmetric ``N x = b`` (batched), eigenvalues below ``_RCOND``
+def _psolve(N: np.ndarray, b: np.ndarray, rcond: float = _RCOND) -> np.ndarray:
+    """Minimum-norm solution of symmetric ``N x = b`` (batched), eigenvalues below ``rcond``
     of the largest dropped."""
     lam, V = np.linalg.eigh(N)
-    keep = lam > _RCOND * lam[..., -1:]
+    keep = lam > rcond * lam[..., -1:]
     inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     return np.einsum("...ij,...j,...kj,...k->...i", V, inv, V, b)
 
@@ -315,7 +318,8 @@ def linear_extrinsics(points_mm: list[np.ndarray], planes: list[Plane]
     An = np.vstack([np.tile(pl.normal, (len(p), 1)) for p, pl in zip(points_mm, planes)])
     P3 = np.vstack([np.column_stack([p, np.zeros(len(p))]) for p in points_mm])
     rhs = 1000.0 * d - np.einsum("ij,ij->i", An, P3 @ R.T)
-    T = _psolve(An.T @ An, An.T @ rhs)
+    T = _psolve(An.T @ An, An.T @ rhs, rcond=PARALLEL_LIMIT ** 2)  # unseen along a common board
+    # direction (e.g. every board vertical): left at its minimum norm, see unobservable_directions
     return R, T, s
 
 
@@ -651,8 +655,37 @@ class PlanesResult:
                               "sigma_mm": None if not np.isfinite(d.sigma_mm) else d.sigma_mm}
                              for d in unc.undetermined],
             "noise_scale": self.refined.noise_scale,
+            "view_chi2": dict(zip(("chi2", "dof"), view_level_chi2(
+                [v for v, u in zip(self.views, self.used) if u], self.R, self.T))),
             "linear": {"R": self.R_linear.tolist(), "T_mm": self.T_linear.tolist()},
         }
+
+
+def view_level_chi2(views: list[ViewData], R: np.ndarray, T: np.ndarray) -> tuple[float, int]:
+    """Birge-ratio test at the level of whole views: each view's residuals to its measured board
+    plane are summarised by the line ``r = a + b s`` (``s`` along the board returns); under the
+    noise model ``(a, b)`` has the covariance of the board plane (from the corners) plus the
+    range noise's share, and ``sum_i [a b] Sigma_i^-1 [a b]^T`` is chi-square with
+    ``2 n - 6`` degrees of freedom. Returns ``(chi2, dof)``. Effects the point noise cannot
+    average away (a bent board, a range bias on black squares, corner bias) show here, not
+    in the per-point residuals."""
+    chi2 = 0.0
+    for v in views:
+        p = v.points_mm
+        X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
+        r = v.board.plane.distance(X)
+        c = X.mean(0)
+        t = X[-1] - X[0]
+        t = t / np.linalg.norm(t)
+        sk = (X - c) @ t
+        A = np.column_stack([np.ones(len(sk)), sk])
+        ab, *_ = np.linalg.lstsq(A, r, rcond=None)
+        G = np.array([[c @ v.board.basis[:, 0], c @ v.board.basis[:, 1], -1.0],
+                      [t @ v.board.basis[:, 0], t @ v.board.basis[:, 1], 0.0]])
+        noise = v.sigma_range_mm ** 2 * np.linalg.inv(A.T @ A)
+        cov = G @ v.board.cov @ G.T + noise
+        chi2 += float(ab @ np.linalg.solve(cov, ab))
+    return chi2, 2 * len(views) - 6
 
 
 def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -715,8 +748,16 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                                   "some views")
     tot = [float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2]))) for v in sub]
     gates = [max(10.0 * t, 10.0) for t in tot]
-    choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
-                                   gates, rng)
+    if len(sub) >= MIN_VIEWS_CONSENSUS:
+        choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
+                                       gates, rng)
+    else:  # too few views to cross-check: the segment with most returns in each scan
+        choice = [max(range(len(v.candidates)), key=lambda k: len(v.candidates[k].beams))
+                  if v.candidates else None for v in sub]
+        warnings.append(f"only {len(sub)} views: too few to cross-check which scan segment is the "
+                        f"board (>= {MIN_VIEWS_CONSENSUS} needed), so the segment with most returns "
+                        "was taken in each scan, and the linear start is underdetermined; check "
+                        "the projections, and add views")
     chosen = [(v, v.candidates[c]) for v, c in zip(sub, choice) if c is not None]
     if len(chosen) < MIN_VIEWS:
         raise DatasetError(where, f"the scans of only {len(chosen)} view(s) agree on a board "
@@ -785,6 +826,19 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
         for k, v in enumerate(views):
             if used[k]:
                 rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
+    chi2, dof = view_level_chi2([v for v, u in zip(views, used) if u], R, T)
+    if dof > 0:
+        birge = float(np.sqrt(max(1.0, chi2 / dof)))
+        if birge > ref.noise_scale:
+            ref = replace(ref, noise_scale=birge)
+        if birge > 2.0:
+            warnings.append(f"the views disagree with each other beyond the corner and range noise "
+                            f"(view-level chi2 {chi2:.0f} for {dof} degrees of freedom); the sigmas "
+                            f"are scaled by {birge:.1f} (likely causes: a bent board, a range bias "
+                            "on the black squares, corner bias near markers)")
+    else:
+        warnings.append(f"{sum(used)} views fix the six pose parameters exactly: nothing checks "
+                        "them; add views")
     unc = pose_uncertainty(ref, lever, limit_mm, held)
     warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
     return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)

@@ -77,6 +77,17 @@ def test_parallel_boards_fail_with_the_reason():
         calibrate_planes(views_for_planes(rig))
 
 
+def test_four_real_views_that_disagree_do_not_give_a_confident_answer(tapas):
+    # views 00-03 alone: their optimum lies ~100 mm from the 7-view one; the view-level chi2
+    # (124 for 2 dof) scales the sigmas and one rotation comes out undetermined (measured)
+    import copy
+
+    res = calibrate_planes([copy.copy(tapas.views[k]) for k in range(4)])
+    assert res.uncertainty.undetermined
+    assert any("too few to cross-check" in w for w in res.warnings)
+    assert any("undetermined" in w for w in res.warnings)
+
+
 def test_too_few_views_fail():
     rig = simulate_oneboard(2, 2)
     with pytest.raises(DatasetError, match="at least 3 views"):
@@ -108,7 +119,10 @@ def test_real_views_all_used_with_millimetre_residuals(tapas):
     assert tapas.total_rms_mm < 5.0
     assert max(tapas.rms_mm) < 5.5
     assert not tapas.uncertainty.undetermined
-    assert max(tapas.uncertainty.translation_mm) < 5 and max(tapas.uncertainty.rotation_deg) < 0.5
+    # the views disagree beyond the corner and range noise (view-level chi2 105 for 8 dof): the
+    # sigmas are scaled by 3.6 and it says so; measured 2.5-7.1 mm and 0.43-0.62 deg
+    assert max(tapas.uncertainty.translation_mm) < 10 and max(tapas.uncertainty.rotation_deg) < 1
+    assert any("views disagree" in w for w in tapas.warnings)
     # the board segment in each scan is the board: ~250-300 returns, not the wall or the stand
     assert all(200 < len(v.beams) < 400 for v in tapas.views)
 
