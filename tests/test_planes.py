@@ -217,3 +217,25 @@ def test_read_view_pairs_rejects_a_bad_scan(tmp_path):
     (tmp_path / "a.csv").write_text("u,v\n1,2\n")
     with pytest.raises(DatasetError, match="expected columns angle_deg,range_mm or x_mm,y_mm"):
         read_view_pairs(tmp_path)
+
+
+def test_readme_commands_run(tmp_path, small_dataset):
+    # lidarcal planes on the bundled real views, as the README shows it
+    out = tmp_path / "OUT"
+    r = _lidarcal("planes", TAPAS, "--pattern", "8x5", "--square-mm", "100", "--camera",
+                  TAPAS / "camera.json", "--out", out)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((out / "extrinsics.json").read_text())
+    assert all(v["used"] for v in doc["views"]) and doc["rms_mm"] < 5.0
+    assert len(list(out.glob("projection_*.png"))) == 7
+    # lidarcal overlay with a calibration of a (small) turntable dataset
+    r = _lidarcal("calibrate", small_dataset, "--out", tmp_path / "cal", "--method", "rigid")
+    assert r.returncode == 0, r.stderr
+    png = tmp_path / "scan_on_image.png"
+    r = _lidarcal("overlay", small_dataset, "--calibration", tmp_path / "cal" / "calibration.json",
+                  "--index", "1", "--out", png)
+    assert r.returncode == 0, r.stderr
+    assert png.stat().st_size > 10_000
+    r = _lidarcal("overlay", small_dataset, "--calibration", tmp_path / "cal" / "calibration.json",
+                  "--index", "99", "--out", png)
+    assert r.returncode == 2 and "no position with index 99" in r.stderr
