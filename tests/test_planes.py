@@ -88,6 +88,18 @@ def test_four_real_views_that_disagree_do_not_give_a_confident_answer(tapas):
     assert any("undetermined" in w for w in res.warnings)
 
 
+def test_real_views_with_boards_sharing_one_direction_name_it(tapas):
+    # views 00, 03, 04: their board normals are within 0.1 deg of perpendicular to one direction
+    # (singular values 1 : 0.34 : 0.002): the LiDAR's position along it is not observed
+    import copy
+
+    res = calibrate_planes([copy.copy(tapas.views[k]) for k in (0, 3, 4)])
+    tr = [d for d in res.uncertainty.undetermined if d.kind == "translation"]
+    assert tr and not np.isfinite(tr[0].sigma_mm)
+    assert any("perpendicular to camera-frame direction" in w for w in res.warnings)
+    assert all(v is None for v in res.uncertainty.translation_mm)
+
+
 def test_too_few_views_fail():
     rig = simulate_oneboard(2, 2)
     with pytest.raises(DatasetError, match="at least 3 views"):
