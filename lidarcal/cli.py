@@ -183,7 +183,8 @@ def _cmd_report(a: argparse.Namespace) -> int:
 
 def _cmd_planes(a: argparse.Namespace) -> int:
     from .dataset import BoardSpec
-    from .planes import run_planes, write_extrinsics, write_projections
+    from .planes import run_planes, write_extrinsics
+    from .planes_plots import write_projections
 
     if a.square_mm <= 0:
         raise DatasetError(a.folder, f"--square-mm must be positive, got {a.square_mm:g}")

@@ -43,22 +43,24 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
+from .degeneracy import (
+    MIN_VIEWS,
+    PARALLEL_LIMIT,
+    UNDETERMINED_MM,
+    Uncertainty,
+    describe_degeneracy,
+    pose_uncertainty,
+    unobservable_directions,
+    view_level_chi2,
+)
 from .geometry import Plane, nearest_rotation, plane_basis
 from .scan import scan_points
 from .segments import MIN_POINTS, Segment, local_line_noise, scan_segments
 
 EXTRINSICS_FORMAT = "lidarcal-extrinsics/1"
-#: A pose direction whose 1-sigma exceeds this (mm; rotations count as the displacement they
-#: cause at the board points' RMS range) is reported as undetermined, its sigma as null.
-UNDETERMINED_MM = 50.0
-#: Boards count as all parallel when the second singular value of their stacked normals is below
-#: this share of the first (about 3 deg of spread).
-PARALLEL_LIMIT = 0.05
 #: Views needed to cross-check the board segments (the linear H has nine unknowns, each view
 #: gives two constraints).
 MIN_VIEWS_CONSENSUS = 5
-#: Views needed at all (each view constrains two of the six pose parameters).
-MIN_VIEWS = 3
 _MAD = 1.4826
 
 
@@ -487,124 +489,6 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
 
 
 # ---------------------------------------------------------------------------
-# 5. uncertainty and degeneracy
-
-@dataclass(frozen=True)
-class Undetermined:
-    """A pose direction the views do not determine: ``kind`` "rotation" or "translation",
-    ``direction_cam`` its unit axis / direction in the camera frame, ``sigma_mm`` its
-    1-sigma (inf when exactly undetermined) as the displacement it causes at the board
-    points' RMS range."""
-
-    kind: str
-    direction_cam: np.ndarray
-    sigma_mm: float
-    vector6: np.ndarray
-
-
-@dataclass(frozen=True)
-class Uncertainty:
-    """1-sigma per camera axis (``None`` where undetermined), the 6x6 covariance of
-    ``(omega rad, T mm)`` (pseudo-inverse over the determined directions) and the
-    undetermined directions."""
-
-    rotation_deg: list[float | None]
-    translation_mm: list[float | None]
-    covariance: np.ndarray
-    undetermined: list[Undetermined]
-    lever_mm: float
-
-
-def unobservable_directions(normals: np.ndarray, R: np.ndarray, T: np.ndarray,
-                            max_tilt_deg: float = 30.0) -> list[np.ndarray]:
-    """Pose directions ``(omega, dT)`` (6-vectors) the geometry cannot see when every board normal
-    is perpendicular to one direction ``u`` (smallest singular vector, below
-    :data:`PARALLEL_LIMIT`): the translation along ``u`` always; and while the scan plane's normal
-    is within ``max_tilt_deg`` of ``u`` (every board vertical, scan plane horizontal), the
-    rotations about the LiDAR's centre about both axes perpendicular to ``u``,
-    ``(a, -a x T)``. To first order these change no residual at the exact degenerate pose but
-    become weakly (and wrongly) visible once the estimate has drifted along them, so they are
-    named from the geometry, not from the information matrix."""
-    _, sv, vt = np.linalg.svd(np.asarray(normals, float))
-    if len(sv) < 3 or sv[2] >= PARALLEL_LIMIT * sv[0]:
-        return []
-    u = vt[2]
-    out = [np.concatenate([np.zeros(3), u])]
-    if abs(R[:, 2] @ u) >= np.cos(np.radians(max_tilt_deg)):
-        a = plane_basis(u)
-        out += [np.concatenate([a[k], -np.cross(a[k], T)]) for k in range(2)]
-    return out
-
-
-def pose_uncertainty(ref: Refined, lever_mm: float, limit_mm: float = UNDETERMINED_MM,
-                     unobservable: list[np.ndarray] = ()) -> Uncertainty:
-    """Eigen-analysis of the pose information, rotations scaled by ``lever_mm`` (the board
-    points' RMS range) so both kinds are mm: an eigen-direction whose 1-sigma exceeds
-    ``limit_mm`` is undetermined; an axis with a share (> 5 %) in one has sigma None.
-    ``unobservable`` directions (from :func:`unobservable_directions`) are removed from the
-    information first, so they come out undetermined."""
-    S = np.diag([lever_mm] * 3 + [1.0] * 3)
-    Si = np.linalg.inv(S)
-    info = Si @ ref.information @ Si
-    if len(unobservable):  # project the named directions (scaled coordinates) out
-        Q, _ = np.linalg.qr(np.array([S @ v for v in unobservable]).T)
-        Pm = np.eye(6) - Q @ Q.T
-        info = Pm @ info @ Pm
-    lam, V = np.linalg.eigh(info)
-    top = max(float(lam.max()), 1e-300)
-    sig = np.where(lam > 1e-12 * top, ref.noise_scale / np.sqrt(np.maximum(lam, 1e-300)), np.inf)
-    bad = sig > limit_mm
-    und = []
-    for k in np.flatnonzero(bad):
-        v = V[:, k]
-        rot, tr = v[:3], v[3:]
-        kind = "rotation" if np.linalg.norm(rot) >= np.linalg.norm(tr) else "translation"
-        axis = rot if kind == "rotation" else tr
-        axis = axis / np.linalg.norm(axis)
-        if axis[np.argmax(np.abs(axis))] < 0:
-            axis = -axis
-        und.append(Undetermined(kind, axis, float(sig[k]), v))
-    good = ~bad
-    cov_y = (V[:, good] * (sig[good] ** 2)) @ V[:, good].T
-    cov = Si @ cov_y @ Si  # y = S x  ->  cov_x = S^-1 cov_y S^-1: (omega rad, T mm)
-    share = np.sum(V[:, bad] ** 2, axis=1) if bad.any() else np.zeros(6)
-    sd = np.sqrt(np.diag(cov))
-    rot = [None if share[i] > 0.05 else float(np.degrees(sd[i])) for i in range(3)]
-    tr = [None if share[3 + i] > 0.05 else float(sd[3 + i]) for i in range(3)]
-    return Uncertainty(rot, tr, cov, und, lever_mm)
-
-
-def describe_degeneracy(planes: list[Plane], unc: Uncertainty) -> list[str]:
-    """Words for the undetermined directions, with the board geometry that explains them."""
-    out = []
-    if not unc.undetermined:
-        return out
-    N = np.array([p.normal for p in planes])
-    _, s, vt = np.linalg.svd(N)
-    why = ""
-    if len(planes) < MIN_VIEWS:
-        why = f"only {len(planes)} usable view(s) (each view fixes two of the six pose parameters)"
-    elif s[1] < 0.05 * s[0]:
-        why = ("every board is (nearly) parallel to the others (normals within "
-               f"{np.degrees(np.arcsin(min(1.0, s[1] / s[0]))):.1f} deg); tilt the board differently")
-    elif s[2] < 0.05 * s[0]:
-        u = vt[2] * np.sign(vt[2][np.argmax(np.abs(vt[2]))])
-        why = ("every board normal is perpendicular to camera-frame direction "
-               f"[{u[0]:.3f}, {u[1]:.3f}, {u[2]:.3f}] (e.g. every board vertical while the scan "
-               "plane is horizontal): positions along that direction and the scan plane's tilt "
-               "are not observed; tilt the board forwards/backwards in some views")
-    parts = []
-    for d in unc.undetermined:
-        v = d.direction_cam
-        sig = "infinite" if not np.isfinite(d.sigma_mm) else f"{d.sigma_mm:.0f} mm"
-        what = "translation along" if d.kind == "translation" else "rotation about"
-        parts.append(f"{what} camera-frame [{v[0]:.3f}, {v[1]:.3f}, {v[2]:.3f}] (1-sigma {sig})")
-    out.append("undetermined pose direction(s): " + "; ".join(parts)
-               + (f"; cause: {why}" if why else "") + "; their sigma is null")
-    return out
-
-
-# ---------------------------------------------------------------------------
 # the whole calibration
 
 @dataclass
@@ -659,33 +543,6 @@ class PlanesResult:
                 [v for v, u in zip(self.views, self.used) if u], self.R, self.T))),
             "linear": {"R": self.R_linear.tolist(), "T_mm": self.T_linear.tolist()},
         }
-
-
-def view_level_chi2(views: list[ViewData], R: np.ndarray, T: np.ndarray) -> tuple[float, int]:
-    """Birge-ratio test at the level of whole views: each view's residuals to its measured board
-    plane are summarised by the line ``r = a + b s`` (``s`` along the board returns); under the
-    noise model ``(a, b)`` has the covariance of the board plane (from the corners) plus the
-    range noise's share, and ``sum_i [a b] Sigma_i^-1 [a b]^T`` is chi-square with
-    ``2 n - 6`` degrees of freedom. Returns ``(chi2, dof)``. Effects the point noise cannot
-    average away (a bent board, a range bias on black squares, corner bias) show here, not
-    in the per-point residuals."""
-    chi2 = 0.0
-    for v in views:
-        p = v.points_mm
-        X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
-        r = v.board.plane.distance(X)
-        c = X.mean(0)
-        t = X[-1] - X[0]
-        t = t / np.linalg.norm(t)
-        sk = (X - c) @ t
-        A = np.column_stack([np.ones(len(sk)), sk])
-        ab, *_ = np.linalg.lstsq(A, r, rcond=None)
-        G = np.array([[c @ v.board.basis[:, 0], c @ v.board.basis[:, 1], -1.0],
-                      [t @ v.board.basis[:, 0], t @ v.board.basis[:, 1], 0.0]])
-        noise = v.sigma_range_mm ** 2 * np.linalg.inv(A.T @ A)
-        cov = G @ v.board.cov @ G.T + noise
-        chi2 += float(ab @ np.linalg.solve(cov, ab))
-    return chi2, 2 * len(views) - 6
 
 
 def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -839,7 +696,7 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     else:
         warnings.append(f"{sum(used)} views fix the six pose parameters exactly: nothing checks "
                         "them; add views")
-    unc = pose_uncertainty(ref, lever, limit_mm, held)
+    unc = pose_uncertainty(ref.information, ref.noise_scale, lever, limit_mm, held)
     warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
     return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)
 
@@ -899,92 +756,3 @@ def leave_one_out(views: list[ViewData], result: PlanesResult, seed: int = 0,
         out.append({"name": held.name, "rms_mm": float(np.sqrt(np.mean(res ** 2))),
                     "in_sample_rms_mm": result.rms_mm[k]})
     return out
-
-
-# ---------------------------------------------------------------------------
-# figures
-
-def projection_figure(res: PlanesResult, k: int, image: np.ndarray | None = None):
-    """View ``k``'s scan drawn on its photo with the calibration (board returns ringed, the
-    pattern's outline one square beyond the outer corners in yellow)."""
-    from .board import board_outline_px
-    from .dataset import read_image
-    from .overlay import lidar_on_image
-
-    v = res.views[k]
-    pair = res.pairs[k]  # type: ignore[attr-defined]
-    img = image
-    if img is None:
-        img = cv2.imread(str(pair.image_path), cv2.IMREAD_COLOR)  # colour photo (BGR)
-        if img is None:
-            img = read_image(pair.image_path)
-    outline = None
-    if v.board is not None:
-        outline = board_outline_px(res.camera, v.board.R, v.board.T, v.board.board)  # type: ignore[attr-defined]
-    return lidar_on_image(img, res.camera, res.R, res.T, v.angle_deg, v.range_mm,  # type: ignore[attr-defined]
-                          highlight=v.beams if res.used[k] else None, outline_px=outline,
-                          title=f"{v.name}: scan on the photo")
-
-
-def write_projections(res: PlanesResult, out: str | Path) -> list[Path]:
-    """``OUT/projection_NAME.png`` for every view (see :func:`projection_figure`)."""
-    from .overlay import save_figure
-
-    paths = []
-    for k, v in enumerate(res.views):
-        paths.append(save_figure(projection_figure(res, k), Path(out) / f"projection_{v.name}.png"))
-    return paths
-
-
-def plot_board_segments(res: PlanesResult, cols: int = 4):
-    """Every scan in the LiDAR frame: all returns grey, the candidate segments thin, the
-    board's returns (used in the fit) bold, with the board plane's trace predicted by the
-    calibration."""
-    from .plots import _figure
-
-    n = len(res.views)
-    rows = int(np.ceil(n / cols))
-    fig = _figure(3.2 * cols, 3.0 * rows)
-    for k, v in enumerate(res.views):
-        ax = fig.add_subplot(rows, cols, k + 1)
-        p = scan_points(v.angle_deg, v.range_mm)
-        ax.plot(p[:, 0], p[:, 1], ".", ms=1, color="0.7")
-        for s in v.candidates:
-            ax.plot(s.points[:, 0], s.points[:, 1], "-", lw=0.6, color="tab:blue", alpha=0.5)
-        if res.used[k]:
-            b = v.points_mm
-            ax.plot(b[:, 0], b[:, 1], ".", ms=2, color="tab:red")
-            # trace of the board plane in the scan plane: {p : n.(R p + T) = d}
-            n = res.R.T @ v.board.plane.normal
-            c = v.board.plane.d - v.board.plane.normal @ res.T
-            t = np.array([-n[1], n[0]]) / np.hypot(n[0], n[1])
-            p0 = n[:2] * c / (n[0] ** 2 + n[1] ** 2)
-            s = (b - p0) @ t
-            e = p0 + np.outer([s.min() - 200, s.max() + 200], t)
-            ax.plot(e[:, 0], e[:, 1], "--", color="k", lw=0.8)
-            lim = np.r_[b.min(0) - 600, b.max(0) + 600]
-            ax.set_xlim(lim[0], lim[2])
-            ax.set_ylim(lim[1], lim[3])
-        ax.plot(0, 0, "k+")
-        ax.set_aspect("equal")
-        ax.set_title(f"{v.name}: " + (f"{len(v.beams)} returns, {res.rms_mm[k]:.1f} mm RMS"
-                                      if res.used[k] else "not used"), fontsize=8)
-        ax.tick_params(labelsize=6)
-    return fig
-
-
-def plot_view_residuals(res: PlanesResult):
-    """Point-to-plane residuals (mm) of every used view against the beam index."""
-    from .plots import _figure
-
-    fig = _figure(7.0, 3.6)
-    ax = fig.add_subplot()
-    for k, v in enumerate(res.views):
-        if res.used[k]:
-            ax.plot(v.beams, plane_residuals_mm(v, res.R, res.T), ".", ms=2,
-                    label=f"{v.name} ({res.rms_mm[k]:.1f} mm)")
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xlabel("beam index")
-    ax.set_ylabel("point-to-plane residual (mm)")
-    ax.legend(fontsize=7, ncols=4)
-    return fig
