@@ -10,23 +10,25 @@ the point-on-plane constraint (Zhang & Pless, eq. 5)::
 which is linear in the nine entries of ``H``. Steps:
 
 1. board plane per view with its 3x3 covariance from the corner noise
-   (:func:`board_plane`, ``cv2.solvePnP`` + the projection Jacobian);
-2. straight segments of each scan (:func:`scan_segments`, quantised ranges
-   allowed for) and the board segment chosen by consensus: linear hypotheses
-   ``H`` from a few views, every view's candidates scored against the board
-   plane they predict (:func:`select_board_segments`);
+   (:func:`board_plane`, ``cv2.solvePnP`` + the projection Jacobian; of the package's
+   corners and OpenCV's accuracy-mode corners, the set that fits the board better);
+2. straight segments of each scan (:func:`lidarcal.segments.scan_segments`, quantised
+   ranges allowed for) and the board segment chosen by consensus: rigid hypotheses
+   from the linear solution of five random views, every view's candidates scored
+   against the board plane they predict (:func:`select_board_segments`);
 3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
-   ``R`` the nearest rotation to ``[h1 h2 h1 x h2]``, ``T = h3``);
-4. all scan points gated on the predicted board plane (the board's width
-   is not needed) and the robust maximum-likelihood refinement
-   (:func:`refine_extrinsics`): point-to-plane residuals over the range noise
-   projected on the plane normal, each board plane a nuisance parameter with
-   its prior from the corners, ``scipy.optimize.least_squares`` with a
-   ``soft_l1`` loss;
-5. the covariance and its eigen-analysis (:func:`pose_uncertainty`): a
+   ``R`` the nearest rotation to ``[h1 h2 h1 x h2]``, ``T`` by least squares with
+   ``R`` fixed);
+4. the robust maximum-likelihood refinement (:func:`refine_extrinsics`): point-to-plane
+   residuals over the range noise projected on the plane normal, each board plane a
+   nuisance parameter with its prior from the corners, ``least_squares`` with a
+   ``soft_l1`` loss; then every return within 4 sigma of the predicted board plane
+   (the board's width is not needed) and refine again;
+5. the covariance and its eigen-analysis (:mod:`lidarcal.degeneracy`): a
    direction the views do not determine (e.g. every board vertical and the
    scan plane horizontal: the height along the boards and the tilt of the
-   scan plane) is named in the warnings and its sigma is ``null``.
+   scan plane) is named in the warnings and its sigma is ``null``; the sigmas
+   are scaled by the views' disagreement beyond the noise (view-level chi-square).
 
 Convention: ``X_cam = R X_lidar + T``, camera frame OpenCV's, mm; angles in
 degrees at the edges, radians inside.
