@@ -257,12 +257,13 @@ def select_board_segments(candidates: list[list[Segment]], planes: list[Plane],
                           hypotheses: int = 10000, max_candidates: int = 4) -> list[int | None]:
     """Which candidate segment of each view is the board: consensus of linear hypotheses.
 
-    A hypothesis is the least-squares ``H`` of ``min(5, n)`` random views with one random
-    candidate each (five views give the ten constraints nine unknowns need); every
+    A hypothesis is the least-squares ``H`` of ``min(5, n)`` views with one candidate each
+    (five views give the ten constraints nine unknowns need; every such choice when there are
+    at most ``hypotheses``, else random ones), made rigid (:func:`_hypotheses`); every
     candidate of every view is scored by the RMS of its points to the board plane
-    ``H`` predicts, a view agreeing when its best candidate is within its gate. The
-    hypothesis with most agreeing views (then the least summed RMS) wins; views that do
-    not agree get ``None``. Each view offers its ``max_candidates`` segments with the most
+    ``H`` predicts; the hypothesis with the least sum over views of
+    ``min(rms / gate, 1)^2`` wins (MSAC: a wrong segment that fits loosely costs more than a
+    view left out); views whose best candidate is beyond their gate get ``None``. Each view offers its ``max_candidates`` segments with the most
     returns (a calibration board is a large, near surface); nothing else is assumed about
     which segment is the board.
     """
@@ -274,30 +275,28 @@ def select_board_segments(candidates: list[list[Segment]], planes: list[Plane],
     if len(views) < MIN_VIEWS:
         return [None] * n
     k = min(5, len(views))
-    total = int(np.prod([float(len(mom[i])) for i in views]))
-    if total <= hypotheses and len(views) <= 6:  # small problems: every combination
-        import itertools
-        combos = itertools.product(*[range(len(mom[i])) for i in views])
-        flat = np.stack([sum(mom[i][c].flat for i, c in zip(views, cb)) for cb in combos])
+    import itertools
+
+    subsets = list(itertools.combinations(views, k))
+    total = sum(int(np.prod([len(mom[i]) for i in sub])) for sub in subsets)
+    if total <= hypotheses:  # small problems: every k views with every choice of candidates
+        flat = np.stack([sum(mom[i][c].flat for i, c in zip(sub, cb)) for sub in subsets
+                         for cb in itertools.product(*[range(len(mom[i])) for i in sub])])
     else:
         flat = np.empty((hypotheses, 120))
         for h in range(hypotheses):
             pick = rng.choice(views, size=k, replace=False)
             flat[h] = sum(mom[i][rng.integers(len(mom[i]))].flat for i in pick)
     H = _hypotheses(flat)
-    best_count = np.zeros(len(H), int)
-    best_sum = np.zeros(len(H))
+    cost = np.zeros(len(H))
     choice = np.full((len(H), n), -1)
     for i in views:
         rms = np.stack([_rms_under(H, m) for m in mom[i]], axis=1)  # (K, candidates)
         j = np.argmin(rms, axis=1)
-        r = rms[np.arange(len(H)), j]
-        ok = r <= gates_mm[i]
-        best_count += ok
-        best_sum += np.where(ok, r, 0.0)
-        choice[:, i] = np.where(ok, j, -1)
-    order = np.lexsort((best_sum, -best_count))
-    win = choice[order[0]]
+        r = rms[np.arange(len(H)), j] / gates_mm[i]
+        cost += np.minimum(r, 1.0) ** 2  # MSAC: truncated quadratic, not an inlier count
+        choice[:, i] = np.where(r <= 1.0, j, -1)
+    win = choice[int(np.argmin(cost))]
     return [keep[i][int(c)] if c >= 0 else None for i, c in enumerate(win)]
 
 
@@ -547,6 +546,19 @@ class PlanesResult:
         }
 
 
+def _lies_along_plane(view: ViewData, R: np.ndarray, T: np.ndarray, sigma_mm: float) -> bool:
+    """A late view's gated returns are its board only if they run along the predicted plane:
+    RMS within ``3 sigma + 1 mm`` and no trend across the run beyond ``3 sigma`` (a scan line
+    that merely crosses the predicted plane leaves a short run with a steep trend)."""
+    r = plane_residuals_mm(view, R, T)
+    if np.sqrt(np.mean(r ** 2)) > 3.0 * sigma_mm + 1.0:
+        return False
+    p = view.points_mm
+    s = (p - p.mean(0)) @ (p[-1] - p[0]) / max(np.linalg.norm(p[-1] - p[0]), 1e-9)
+    b = np.polyfit(s, r, 1)[0] if np.ptp(s) > 0 else 0.0
+    return abs(b) * np.ptp(s) <= 3.0 * sigma_mm
+
+
 def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
     """Signed distances (mm) of a view's board returns, mapped by ``(R, T)``, to the board
     plane measured by the camera."""
@@ -606,7 +618,7 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                                   "their normal are undetermined; tilt the board differently in "
                                   "some views")
     tot = [float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2]))) for v in sub]
-    gates = [max(10.0 * t, 10.0) for t in tot]
+    gates = [max(5.0 * t, 5.0) for t in tot]  # a rigid hypothesis from five right views: ~1-2 t
     if len(sub) >= MIN_VIEWS_CONSENSUS:
         choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
                                        gates, rng)
@@ -640,8 +652,7 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     for v, t in zip(sub, tot):
         if id(v) not in seeds:
             v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, 4.0 * t)
-            if len(v.beams) >= MIN_POINTS and np.sqrt(np.mean(
-                    plane_residuals_mm(v, R, T) ** 2)) > 3.0 * t + 1.0:
+            if len(v.beams) >= MIN_POINTS and not _lies_along_plane(v, R, T, t):
                 v.beams = np.zeros(0, int)
     used, rms = [], []
     for v in views:

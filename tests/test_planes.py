@@ -100,6 +100,19 @@ def test_real_views_with_boards_sharing_one_direction_name_it(tapas):
     assert all(v is None for v in res.uncertainty.translation_mm)
 
 
+def test_a_scan_of_another_view_is_rejected(tapas):
+    # view 05 gets view 03's scan (a mismatched pair): its board plane agrees with no segment
+    import copy
+
+    views = [copy.copy(v) for v in tapas.views]
+    w = views[5]
+    w.angle_deg, w.range_mm, w.candidates = views[3].angle_deg, views[3].range_mm, views[3].candidates
+    res = calibrate_planes(views)
+    assert res.used == [True] * 5 + [False, True]
+    assert any(x.startswith("05: no board segment") for x in res.warnings)
+    assert res.total_rms_mm < 5.0
+
+
 def test_too_few_views_fail():
     rig = simulate_oneboard(2, 2)
     with pytest.raises(DatasetError, match="at least 3 views"):
