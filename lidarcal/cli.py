@@ -145,6 +145,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--format", choices=["ply", "pcd", "vtp", "csv"], default="ply",
                    help="format of files written into a folder (default ply, binary)")
 
+    s = sub.add_parser("planes", help="classic one-board calibration (Zhang-Pless) of a LiDAR "
+                                      "against a camera from photo + scan pairs")
+    s.add_argument("folder", type=Path, help="folder of NAME.png|jpg + NAME.csv pairs")
+    s.add_argument("--pattern", type=_pattern, required=True, help="inner corners, e.g. 8x5")
+    s.add_argument("--square-mm", type=float, required=True)
+    s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
+    s.add_argument("--out", type=Path, required=True, help="output folder for extrinsics.json")
+    s.add_argument("--no-figures", action="store_true", help="skip OUT/projection_NAME.png")
+
+    s = sub.add_parser("overlay", help="draw a dataset position's scan on its image with a "
+                                       "calibration")
+    s.add_argument("dataset", type=Path)
+    s.add_argument("--calibration", type=Path, required=True)
+    s.add_argument("--index", type=int, required=True, help="position index")
+    s.add_argument("--out", type=Path, required=True, help="PNG path")
+
     s = sub.add_parser("report", help="write the PDF calibration report")
     s.add_argument("dataset", type=Path)
     s.add_argument("--out", type=Path, required=True, help="report PDF path")
@@ -325,6 +341,38 @@ def _cmd_workbook(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_planes(a: argparse.Namespace) -> int:
+    from .dataset import BoardSpec
+    from .planes import run_planes, write_extrinsics
+    from .planes_plots import write_projections
+
+    if a.square_mm <= 0:
+        raise DatasetError(a.folder, f"--square-mm must be positive, got {a.square_mm:g}")
+    res = run_planes(a.folder, a.camera, BoardSpec(a.pattern, a.square_mm))
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    if not a.no_figures:
+        write_projections(res, a.out)
+    path = write_extrinsics(res, a.out, command=" ".join(["lidarcal", *sys.argv[1:]]))
+    u = res.uncertainty
+    fmt = lambda v: "null" if v is None else f"{v:.3g}"
+    print(f"views used {sum(res.used)} of {len(res.views)}; point-to-plane RMS {res.total_rms_mm:.2f} mm")
+    print("R =\n" + np.array2string(res.R, precision=6, suppress_small=True))
+    print("T_mm =", np.array2string(res.T, precision=2, suppress_small=True))
+    print(f"1-sigma rotation deg (x, y, z): {', '.join(fmt(v) for v in u.rotation_deg)}; "
+          f"translation mm: {', '.join(fmt(v) for v in u.translation_mm)}")
+    print(f"wrote {path}")
+    return 0
+
+
+def _cmd_overlay(a: argparse.Namespace) -> int:
+    from .overlay import overlay_calibration
+
+    overlay_calibration(a.dataset, a.calibration, a.index, a.out)
+    print(f"wrote {a.out}")
+    return 0
+
+
 COMMANDS = {
     "simulate": _cmd_simulate,
     "import": _cmd_import,
@@ -334,6 +382,8 @@ COMMANDS = {
     "pose": _cmd_pose,
     "measure": _cmd_measure,
     "cloud": _cmd_cloud,
+    "planes": _cmd_planes,
+    "overlay": _cmd_overlay,
     "report": _cmd_report,
     "workbook": _cmd_workbook,
 }

@@ -42,6 +42,8 @@ TESTED_BY = {
     "import": "test_bag.py::test_ros1_raw_images_cli",
     "check": "test_check.py::test_readme_own_rig_commands",
     "workbook": "test_workbook.py::test_workbook_runs_on_an_unseen_dataset_without_truth",
+    "planes": "test_planes.py::test_readme_commands_run",
+    "overlay": "test_planes.py::test_readme_commands_run",
 }
 
 _CODE = re.compile(r"```[^\n]*\n(.*?)```|`([^`\n]+)`", re.DOTALL)

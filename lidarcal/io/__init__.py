@@ -4,4 +4,5 @@ nothing heavy; import the submodule you need).
 - :mod:`lidarcal.io.bag`: ROS 1 / ROS 2 bags (through rosbags) into a dataset folder.
 - :mod:`lidarcal.io.rig`: RIG.json, what a bag cannot hold.
 - :mod:`lidarcal.io.clouds`: point clouds out (PLY, PCD, VTP, CSV) and back in.
+- :mod:`lidarcal.io.pairs`: photo + scan pairs of the one-board calibration (``lidarcal planes``).
 """

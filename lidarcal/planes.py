@@ -1,0 +1,771 @@
+"""The classic one-board calibration of a 2D LiDAR against a camera (Zhang & Pless 2004).
+
+Each view shows one flat chessboard to the camera (its plane ``n_i . X = d_i``
+in the camera frame, from the corners) and to the LiDAR (a line of returns
+in the scan plane). A LiDAR point ``p = (x, y, 0)`` on the board satisfies
+the point-on-plane constraint (Zhang & Pless, eq. 5)::
+
+    n_i . (R p + T) = d_i,   i.e.   n_i^T H (x, y, 1)^T = d_i,   H = [r1 r2 T]
+
+which is linear in the nine entries of ``H``. Steps:
+
+1. board plane per view with its 3x3 covariance from the corner noise
+   (:func:`board_plane`, ``cv2.solvePnP`` + the projection Jacobian; of the package's
+   corners and OpenCV's accuracy-mode corners, the set that fits the board better);
+2. straight segments of each scan (:func:`lidarcal.segments.scan_segments`, quantised
+   ranges allowed for) and the board segment chosen by consensus: rigid hypotheses
+   from the linear solution of five random views, every view's candidates scored
+   against the board plane they predict (:func:`select_board_segments`);
+3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
+   ``R`` the nearest rotation to ``[h1 h2 h1 x h2]``, ``T`` by least squares with
+   ``R`` fixed);
+4. the robust maximum-likelihood refinement (:func:`refine_extrinsics`): point-to-plane
+   residuals over the range noise projected on the plane normal, each board plane a
+   nuisance parameter with its prior from the corners, ``least_squares`` with a
+   ``soft_l1`` loss; then every return within 4 sigma of the predicted board plane
+   (the board's width is not needed) and refine again;
+5. the covariance and its eigen-analysis (:mod:`lidarcal.degeneracy`): a
+   direction the views do not determine (e.g. every board vertical and the
+   scan plane horizontal: the height along the boards and the tilt of the
+   scan plane) is named in the warnings and its sigma is ``null``; the sigmas
+   are scaled by the views' disagreement beyond the noise (view-level chi-square).
+
+Convention: ``X_cam = R X_lidar + T``, camera frame OpenCV's, mm; angles in
+degrees at the edges, radians inside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from .dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
+from .degeneracy import (
+    MIN_VIEWS,
+    PARALLEL_LIMIT,
+    UNDETERMINED_MM,
+    Uncertainty,
+    describe_degeneracy,
+    pose_uncertainty,
+    unobservable_directions,
+    view_level_chi2,
+)
+from .geometry import Plane, nearest_rotation, plane_basis
+from .scan import scan_points
+from .segments import MIN_POINTS, Segment, local_line_noise, scan_segments
+
+EXTRINSICS_FORMAT = "lidarcal-extrinsics/1"
+#: Views needed to cross-check the board segments (the linear H has nine unknowns, each view
+#: gives two constraints).
+MIN_VIEWS_CONSENSUS = 5
+_MAD = 1.4826
+
+
+# ---------------------------------------------------------------------------
+# 1. board planes with their uncertainty
+
+@dataclass(frozen=True)
+class BoardPlane:
+    """One view's board plane ``n . X = d`` (camera frame, mm) and its uncertainty.
+
+    ``cov`` (3, 3) is the covariance of ``(b1 . dn, b2 . dn, dd)``, with ``basis`` =
+    ``[b1 b2]`` (3, 2) spanning the plane's tangent directions: the first-order
+    propagation of the corner noise (``sigma_px``, from the reprojection residuals)
+    through ``cv2.solvePnP``'s pose. ``R``, ``T`` map board coordinates (mm) into the
+    camera frame (eq. 1); ``board`` is the pattern as found (either way round).
+    """
+
+    plane: Plane
+    cov: np.ndarray
+    basis: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    corners_px: np.ndarray
+    sigma_px: float
+    board: BoardSpec
+
+    def sigma_at(self, X: np.ndarray) -> np.ndarray:
+        """1-sigma (mm) of the plane's distance at camera-frame points ``X`` (N, 3)."""
+        X = np.atleast_2d(X)
+        g = np.column_stack([X @ self.basis, -np.ones(len(X))])  # d(n.X - d)/d(params)
+        return np.sqrt(np.einsum("ij,jk,ik->i", g, self.cov, g))
+
+
+def find_board(image: np.ndarray, board: BoardSpec) -> list[tuple[np.ndarray, BoardSpec]]:
+    """Chessboard corner sets (N, 2) with the pattern either way round (8x5 = 5x8): the
+    package's finder (:func:`lidarcal.camera.detect_chessboard`) and OpenCV's
+    ``findChessboardCornersSB`` in its accuracy mode (``CALIB_CB_ACCURACY``, no
+    ``cornerSubPix``). On the real TAPAS photos, whose boards carry fiducial rings beside
+    the pattern, the latter fits the board model with 0.17-0.50 px against 0.6-2.2 px;
+    :func:`prepare_views` keeps, per view, the set that fits better. Empty if neither
+    finds the board."""
+    from .camera import _gray, detect_chessboard
+
+    gray = _gray(image)
+    c, r = board.inner_corners
+    for size in ((c, r), (r, c)) if c != r else ((c, r),):
+        found = []
+        corners = detect_chessboard(gray, size)
+        if corners is not None:
+            found.append((corners, BoardSpec(size, board.square_mm)))
+        ok, sb = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_ACCURACY
+                                             | cv2.CALIB_CB_EXHAUSTIVE)
+        if ok and sb is not None:
+            found.append((sb.reshape(-1, 2).astype(np.float64), BoardSpec(size, board.square_mm)))
+        if found:
+            return found
+    return []
+
+
+def board_plane(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec) -> BoardPlane:
+    """Board plane (eq. 3 of the paper: ``r3 . X = r3 . T``) with its covariance.
+
+    The pose is ``cv2.solvePnP`` (iterative, the maximum-likelihood pose under
+    i.i.d. corner noise) started from the homography pose; the corner noise
+    ``sigma_px`` is the residual RMS with ``2N - 6`` degrees of freedom; the pose
+    covariance is ``sigma_px^2 (J^T J)^-1`` with ``J`` from ``cv2.projectPoints``,
+    propagated to the plane parameters by their Jacobian.
+    """
+    from .board import pose_from_homography, pose_pnp
+
+    obj = board.object_points()
+    R0, T0 = pose_from_homography(camera, corners_px, obj)
+    R, T = pose_pnp(camera, corners_px, obj, R0, T0)
+    rvec = cv2.Rodrigues(R)[0]
+    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
+    proj, jac = cv2.projectPoints(obj, rvec, T.reshape(3, 1), K, dist)
+    res = proj.reshape(-1, 2) - corners_px
+    n_obs = res.size
+    sigma_px = float(np.sqrt(np.sum(res ** 2) / max(n_obs - 6, 1)))
+    J = jac[:, :6]
+    cov_pose = sigma_px ** 2 * np.linalg.inv(J.T @ J)
+    plane = Plane.from_normal_point(R[:, 2], T)
+    basis = plane_basis(plane.normal).T  # (3, 2)
+
+    def params(x: np.ndarray) -> np.ndarray:
+        Rx = cv2.Rodrigues(x[:3])[0]
+        n = Rx[:, 2]
+        return np.array([basis[:, 0] @ n, basis[:, 1] @ n, n @ x[3:]])
+
+    x0 = np.concatenate([rvec.ravel(), T])
+    G = np.empty((3, 6))
+    for k in range(6):
+        h = 1e-6 if k < 3 else 1e-3
+        e = np.zeros(6)
+        e[k] = h
+        G[:, k] = (params(x0 + e) - params(x0 - e)) / (2 * h)
+    return BoardPlane(plane, G @ cov_pose @ G.T, basis, R, T, np.asarray(corners_px, float),
+                      sigma_px, board)
+
+
+# ---------------------------------------------------------------------------
+# 3. consensus on the board segment and the linear solution (Zhang & Pless)
+
+def _design(points_m: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Rows ``kron((x, y, 1), n)`` of the linear constraint ``n^T H (x, y, 1) = d`` (vec(H)
+    column-major), points in metres (conditioning)."""
+    ph = np.column_stack([points_m, np.ones(len(points_m))])
+    return np.einsum("ij,k->ijk", ph, normal).reshape(len(ph), 9)
+
+
+@dataclass(frozen=True)
+class _Moments:
+    """Sums over one candidate's points under one view's plane (metres): ``N``, ``b``, ``dd`` of
+    the normal equations of ``H``, and ``flat`` = (N, b, C1, C2, C3, v) flattened, where
+    ``C1 = c n n^T``, ``C2 = (sum x) n n^T``, ``C3 = (sum y) n n^T``, ``v = c d n`` (``c`` the
+    count) give ``T`` for a fixed ``R``: ``C1 T = v - C2 r1 - C3 r2``. Sums of ``flat`` over
+    candidates are the moments of their union."""
+
+    N: np.ndarray  # (9, 9)
+    b: np.ndarray  # (9,)
+    dd: float
+    n: int
+    flat: np.ndarray  # (120,)
+
+
+def _moments(points_mm: np.ndarray, plane: Plane) -> _Moments:
+    pm = points_mm / 1000.0
+    A = _design(pm, plane.normal)
+    d = np.full(len(A), plane.d / 1000.0)
+    nn = np.outer(plane.normal, plane.normal)
+    c = float(len(pm))
+    sx, sy = pm.sum(0)
+    N, b = A.T @ A, A.T @ d
+    flat = np.concatenate([N.ravel(), b, (c * nn).ravel(), (sx * nn).ravel(), (sy * nn).ravel(),
+                           c * plane.d / 1000.0 * plane.normal])
+    return _Moments(N, b, float(d @ d), len(A), flat)
+
+
+def _hypotheses(flat: np.ndarray) -> np.ndarray:
+    """Rigid ``vec(H)`` (K, 9) from summed moments (K, 120): the linear ``H`` (Zhang-Pless),
+    ``R`` the nearest rotation to ``[h1 h2 h1 x h2]`` (batched SVD), then ``T`` re-solved with
+    ``R`` fixed. A wrong set of segments can fit the nine free entries of ``H``; it rarely
+    fits a rotation. (Keeping ``h3`` as ``T`` is not enough: with few views the free ``H``
+    trades its rotation part against ``h3``.)"""
+    K = len(flat)
+    N = flat[:, :81].reshape(K, 9, 9)
+    b = flat[:, 81:90]
+    C1, C2, C3 = (flat[:, 90 + 9 * j: 99 + 9 * j].reshape(K, 3, 3) for j in range(3))
+    v = flat[:, 117:120]
+    h = _solve_h(N, b)
+    Hm = h.reshape(-1, 3, 3).transpose(0, 2, 1)  # columns h1, h2, h3
+    M = np.stack([Hm[:, :, 0], Hm[:, :, 1], np.cross(Hm[:, :, 0], Hm[:, :, 1])], axis=2)
+    U, _, Vt = np.linalg.svd(M)
+    D = np.ones((K, 3))
+    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = (U * D[:, None, :]) @ Vt
+    r1, r2 = R[:, :, 0], R[:, :, 1]
+    rhs = v - np.einsum("kij,kj->ki", C2, r1) - np.einsum("kij,kj->ki", C3, r2)
+    T = _psolve(C1, rhs)
+    return np.concatenate([r1, r2, T], axis=1)
+
+
+def _solve_h(N: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares ``vec(H)`` from summed moments (batched; a tiny ridge keeps rank-deficient
+    sets, e.g. parallel boards, solvable: their null space is left at zero)."""
+    return _psolve(N, b)
+
+
+#: Relative eigenvalue below which a direction of the hypotheses' normal equations counts as
+#: unobserved and is left at zero (board normals from real corners scatter by ~1e-3 rad, so an
+#: unobserved direction shows up at ~1e-6 relative).
+_RCOND = 1e-5
+
+
+def _psolve(N: np.ndarray, b: np.ndarray, rcond: float = _RCOND) -> np.ndarray:
+    """Minimum-norm solution of symmetric ``N x = b`` (batched), eigenvalues below ``rcond``
+    of the largest dropped."""
+    lam, V = np.linalg.eigh(N)
+    keep = lam > rcond * lam[..., -1:]
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    return np.einsum("...ij,...j,...kj,...k->...i", V, inv, V, b)
+
+
+def _rms_under(h: np.ndarray, m: _Moments) -> np.ndarray:
+    """RMS (mm) of ``n^T H p - d`` over a candidate's points, for hypotheses ``h`` (K, 9)."""
+    sse = np.einsum("ki,ij,kj->k", h, m.N, h) - 2 * h @ m.b + m.dd
+    return 1000.0 * np.sqrt(np.maximum(sse, 0.0) / m.n)
+
+
+def select_board_segments(candidates: list[list[Segment]], planes: list[Plane],
+                          gates_mm: list[float], rng: np.random.Generator,
+                          hypotheses: int = 10000, max_candidates: int = 4) -> list[int | None]:
+    """Which candidate segment of each view is the board: consensus of linear hypotheses.
+
+    A hypothesis is the least-squares ``H`` of ``min(5, n)`` views with one candidate each
+    (five views give the ten constraints nine unknowns need; every such choice when there are
+    at most ``hypotheses``, else random ones), made rigid (:func:`_hypotheses`); every
+    candidate of every view is scored by the RMS of its points to the board plane
+    ``H`` predicts; the hypothesis with the least sum over views of
+    ``min(rms / gate, 1)^2`` wins (MSAC: a wrong segment that fits loosely costs more than a
+    view left out); views whose best candidate is beyond their gate get ``None``. Each view offers its ``max_candidates`` segments with the most
+    returns (a calibration board is a large, near surface); nothing else is assumed about
+    which segment is the board.
+    """
+    n = len(planes)
+    keep = [sorted(range(len(c)), key=lambda k: -len(c[k].beams))[:max_candidates]
+            for c in candidates]
+    mom = [[_moments(candidates[i][k].points, planes[i]) for k in keep[i]] for i in range(n)]
+    views = [i for i in range(n) if mom[i]]
+    if len(views) < MIN_VIEWS:
+        return [None] * n
+    k = min(5, len(views))
+    import itertools
+
+    subsets = list(itertools.combinations(views, k))
+    total = sum(int(np.prod([len(mom[i]) for i in sub])) for sub in subsets)
+    if total <= hypotheses:  # small problems: every k views with every choice of candidates
+        flat = np.stack([sum(mom[i][c].flat for i, c in zip(sub, cb)) for sub in subsets
+                         for cb in itertools.product(*[range(len(mom[i])) for i in sub])])
+    else:
+        flat = np.empty((hypotheses, 120))
+        for h in range(hypotheses):
+            pick = rng.choice(views, size=k, replace=False)
+            flat[h] = sum(mom[i][rng.integers(len(mom[i]))].flat for i in pick)
+    H = _hypotheses(flat)
+    cost = np.zeros(len(H))
+    choice = np.full((len(H), n), -1)
+    for i in views:
+        rms = np.stack([_rms_under(H, m) for m in mom[i]], axis=1)  # (K, candidates)
+        j = np.argmin(rms, axis=1)
+        r = rms[np.arange(len(H)), j] / gates_mm[i]
+        cost += np.minimum(r, 1.0) ** 2  # MSAC: truncated quadratic, not an inlier count
+        choice[:, i] = np.where(r <= 1.0, j, -1)
+    win = choice[int(np.argmin(cost))]
+    return [keep[i][int(c)] if c >= 0 else None for i, c in enumerate(win)]
+
+
+def linear_extrinsics(points_mm: list[np.ndarray], planes: list[Plane]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Zhang & Pless's linear solution: ``H`` by least squares over every point-on-plane
+    constraint ``n_i^T H (x, y, 1)^T = d_i``, ``R`` = nearest rotation to
+    ``[h1 h2 h1 x h2]`` (SVD), then ``T`` by least squares with ``R`` fixed (better than
+    ``h3`` when few views leave ``H`` loosely determined). Returns ``(R, T_mm, singular values of the
+    design)``; small singular values flag an undetermined ``H``."""
+    A = np.vstack([_design(p / 1000.0, pl.normal) for p, pl in zip(points_mm, planes)])
+    d = np.concatenate([np.full(len(p), pl.d / 1000.0) for p, pl in zip(points_mm, planes)])
+    h = _psolve(A.T @ A, A.T @ d)
+    s = np.linalg.svd(A, compute_uv=False)
+    Hm = h.reshape(3, 3, order="F")
+    h1, h2 = Hm[:, 0], Hm[:, 1]
+    if np.linalg.norm(h1) < 1e-6 or np.linalg.norm(h2) < 1e-6:
+        R = np.eye(3)
+    else:
+        R, _ = nearest_rotation(np.column_stack([h1, h2, np.cross(h1, h2)]))
+    # T again with R fixed: n_i . T = d_i - n_i . R p (the free H trades h3 against h1, h2)
+    An = np.vstack([np.tile(pl.normal, (len(p), 1)) for p, pl in zip(points_mm, planes)])
+    P3 = np.vstack([np.column_stack([p, np.zeros(len(p))]) for p in points_mm])
+    rhs = 1000.0 * d - np.einsum("ij,ij->i", An, P3 @ R.T)
+    T = _psolve(An.T @ An, An.T @ rhs, rcond=PARALLEL_LIMIT ** 2)  # unseen along a common board
+    # direction (e.g. every board vertical): left at its minimum norm, see unobservable_directions
+    return R, T, s
+
+
+# ---------------------------------------------------------------------------
+# 4. gating and the robust maximum-likelihood refinement
+
+def gate_board_points(angle_deg: np.ndarray, range_mm: np.ndarray, plane: Plane, R: np.ndarray,
+                      T: np.ndarray, tol_mm: float, seed_beams: np.ndarray | None = None,
+                      trim: int = 1) -> np.ndarray:
+    """Beam indices of the board's returns: the contiguous run (gaps of one beam allowed)
+    of returns within ``tol_mm`` of the board plane predicted by ``(R, T)`` that holds
+    the most ``seed_beams`` (or the longest run); ``trim`` beams are dropped at each
+    end (mixed returns on the board's edges). The board's width is not needed."""
+    p = scan_points(angle_deg, range_mm)
+    X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
+    with np.errstate(invalid="ignore"):
+        near = np.abs(plane.distance(X)) <= tol_mm
+    idx = np.flatnonzero(near)
+    if len(idx) == 0:
+        return idx
+    cuts = np.flatnonzero(np.diff(idx) > 2) + 1
+    runs = np.split(idx, cuts)
+    if seed_beams is not None and len(seed_beams):
+        score = [np.intersect1d(rn, seed_beams).size for rn in runs]
+    else:
+        score = [len(rn) for rn in runs]
+    run = runs[int(np.argmax(score))]
+    if len(run) > 2 * trim + MIN_POINTS:
+        run = run[trim:len(run) - trim]
+    return run
+
+
+@dataclass
+class ViewData:
+    """One view as the refinement uses it: board plane, the board's returns, noise."""
+
+    name: str
+    board: BoardPlane | None
+    angle_deg: np.ndarray
+    range_mm: np.ndarray
+    sigma_range_mm: float
+    beams: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    candidates: list[Segment] = field(default_factory=list)
+    note: str = ""
+
+    @property
+    def points_mm(self) -> np.ndarray:
+        return scan_points(self.angle_deg[self.beams], self.range_mm[self.beams])
+
+
+def _pose(x: np.ndarray, R0: np.ndarray, T0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return Rotation.from_rotvec(x[:3]).as_matrix() @ R0, T0 + x[3:6]
+
+
+def _point_sigma(v: ViewData, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Range noise projected on the plane normal: ``sigma_r |n . R u|`` (u the beam direction),
+    floored at a quarter of ``sigma_r`` (grazing beams)."""
+    u = p / np.linalg.norm(p, axis=1, keepdims=True)
+    c = np.abs((np.column_stack([u, np.zeros(len(u))]) @ R.T) @ v.board.plane.normal)
+    return v.sigma_range_mm * np.maximum(c, 0.25)
+
+
+@dataclass(frozen=True)
+class Refined:
+    """Outcome of :func:`refine_extrinsics`: pose, the 6x6 information of ``(omega, T)``
+    (rotation vector rad, left-multiplied, camera frame; T mm) after marginalising the
+    board planes, and the noise scale (sqrt of the robust reduced chi-square)."""
+
+    R: np.ndarray
+    T: np.ndarray
+    information: np.ndarray
+    noise_scale: float
+    cost: float
+
+
+def _quadratic_under(r: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
+    """Prior residuals that stay Gaussian under ``least_squares``' robust loss (which applies to
+    every residual): for ``soft_l1``, ``r sqrt(1 + r^2 / (4 f^2))`` has ``f^2 rho(r'^2/f^2) = r^2``
+    exactly. Without this a robust loss would cap the board-plane priors and let the planes
+    drift to fit the scan."""
+    if loss == "linear":
+        return r
+    if loss != "soft_l1":
+        raise ValueError(f"loss must be 'soft_l1' or 'linear', got {loss!r}")
+    return r * np.sqrt(1.0 + r * r / (4.0 * f_scale ** 2))
+
+
+#: Weak priors on the pose's change from its start (rad, mm): they only keep directions the
+#: views cannot see bounded; such directions come out with a 1-sigma near these values, far
+#: above :data:`UNDETERMINED_MM`, and are reported as undetermined.
+WEAK_PRIOR = (0.1, 500.0)
+
+
+def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
+                      loss: str = "soft_l1", f_scale: float = 3.0,
+                      anchor: tuple[np.ndarray, np.ndarray] | None = None,
+                      fixed: list[np.ndarray] = (), lever_mm: float = 1000.0) -> Refined:
+    """Robust maximum likelihood over the pose and every board plane (Zhang & Pless's
+    non-linear step, with the camera's plane noise): residuals
+    ``(n_i' . (R p + T) - d_i') / sigma_k`` for every return (``sigma_k`` from
+    :func:`_point_sigma`; robust ``loss``) and the Gaussian prior ``L_i^-1 delta_i`` (kept
+    quadratic, :func:`_quadratic_under`) of each board plane's
+    perturbation ``delta_i = (b1 . dn, b2 . dn, dd)`` (``L_i L_i^T = cov_i``);
+    ``least_squares`` with ``loss`` (scale ``f_scale`` sigmas). The information of the
+    pose is ``J^T J`` with the planes marginalised (Schur complement). A weak prior
+    (:data:`WEAK_PRIOR`) ties the pose to ``anchor`` (default: the start), so directions the
+    views do not see stay there instead of drifting with the noise. ``fixed`` pose directions
+    (6-vectors of ``(omega, dT)``, e.g. :func:`unobservable_directions`) are held at the start:
+    the pose moves only in their complement (orthogonal with rotations scaled by
+    ``lever_mm``), and the returned information is zero along them."""
+    S = np.diag([lever_mm] * 3 + [1.0] * 3)
+    if len(fixed):
+        Q, _ = np.linalg.qr(np.array([S @ f for f in fixed]).T)
+        U, _, _ = np.linalg.svd(np.eye(6) - Q @ Q.T)
+        Bc = U[:, :6 - Q.shape[1]]
+    else:
+        Bc = np.eye(6)
+    kp = Bc.shape[1]
+    Si = np.linalg.inv(S)
+
+    def pose6(x: np.ndarray) -> np.ndarray:
+        return Si @ (Bc @ x[:kp])
+
+    used = [v for v in views if v.board is not None and len(v.beams) >= MIN_POINTS]
+    pts = [v.points_mm for v in used]
+    sig = [_point_sigma(v, R0, p) for v, p in zip(used, pts)]
+    chol = []
+    for v in used:
+        c = v.board.cov + 1e-12 * np.eye(3)
+        chol.append(np.linalg.cholesky(c))
+    m = len(used)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        R, T = _pose(pose6(x), R0, T0)
+        out = []
+        for k, v in enumerate(used):
+            dlt = x[kp + 3 * k: kp + 3 + 3 * k]
+            n = v.board.plane.normal + v.board.basis @ dlt[:2]
+            nn = np.linalg.norm(n)
+            n = n / nn
+            d = (v.board.plane.d + dlt[2]) / nn
+            X = np.column_stack([pts[k], np.zeros(len(pts[k]))]) @ R.T + T
+            out.append((X @ n - d) / sig[k])
+            out.append(_quadratic_under(np.linalg.solve(chol[k], dlt), loss, f_scale))
+        dev = np.concatenate([Rotation.from_matrix(R @ Ra.T).as_rotvec(), T - Ta])
+        out.append(_quadratic_under(dev / np.repeat(WEAK_PRIOR, 3), loss, f_scale))
+        return np.concatenate(out)
+
+    if m == 0:
+        raise ValueError("no view with board returns to refine on")
+    Ra, Ta = (R0, T0) if anchor is None else anchor
+    x0 = np.zeros(kp + 3 * m)
+    res = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac", method="trf",
+                        tr_solver="lsmr")
+    R, T = _pose(pose6(res.x), R0, T0)
+    J = res.jac
+    info = J.T @ J
+    A, B, C = info[:kp, :kp], info[:kp, kp:], info[kp:, kp:]
+    marg_z = A - B @ np.linalg.solve(C, B.T)
+    marg = S @ Bc @ marg_z @ Bc.T @ S  # information of (omega, T): y = S x = Bc z
+    n_obs = sum(len(p) for p in pts)
+    dof = max(n_obs - 6, 1)
+    scale = float(np.sqrt(max(1.0, 2.0 * res.cost / dof)))
+    return Refined(R, T, 0.5 * (marg + marg.T), scale, float(res.cost))
+
+
+# ---------------------------------------------------------------------------
+# the whole calibration
+
+@dataclass
+class PlanesResult:
+    """Outcome of :func:`calibrate_planes`."""
+
+    R: np.ndarray
+    T: np.ndarray
+    views: list[ViewData]
+    used: list[bool]
+    rms_mm: list[float | None]
+    uncertainty: Uncertainty
+    refined: Refined
+    warnings: list[str]
+    R_linear: np.ndarray
+    T_linear: np.ndarray
+
+    @property
+    def total_rms_mm(self) -> float:
+        res = [plane_residuals_mm(v, self.R, self.T) for v, u in zip(self.views, self.used) if u]
+        allr = np.concatenate(res) if res else np.zeros(0)
+        return float(np.sqrt(np.mean(allr ** 2))) if len(allr) else float("nan")
+
+    def to_dict(self) -> dict:
+        """The ``lidarcal-extrinsics/1`` document (see :func:`write_extrinsics`)."""
+        unc = self.uncertainty
+        return {
+            "format": EXTRINSICS_FORMAT,
+            "R": self.R.tolist(),
+            "T_mm": self.T.tolist(),
+            "sigma": {"rotation_deg": unc.rotation_deg, "translation_mm": unc.translation_mm},
+            "views": [{"name": v.name, "used": bool(u), "points": len(v.beams) if u else 0,
+                       "rms_mm": None if r is None else float(r),
+                       "range_noise_mm": float(v.sigma_range_mm),
+                       "board_plane": None if v.board is None else v.board.plane.to_dict(),
+                       "corner_noise_px": None if v.board is None else v.board.sigma_px,
+                       "beams": [int(b) for b in v.beams] if u else [],
+                       **({"note": v.note} if v.note else {})}
+                      for v, u, r in zip(self.views, self.used, self.rms_mm)],
+            "rms_mm": self.total_rms_mm,
+            "warnings": list(self.warnings),
+            "covariance": {"parameters": ["rot_x_rad", "rot_y_rad", "rot_z_rad", "T_x_mm",
+                                          "T_y_mm", "T_z_mm"],
+                           "matrix": unc.covariance.tolist(),
+                           "note": "rotation as a small rotation vector left-multiplying R, "
+                                   "camera frame; undetermined directions excluded"},
+            "undetermined": [{"kind": d.kind, "direction_cam": d.direction_cam.tolist(),
+                              "sigma_mm": None if not np.isfinite(d.sigma_mm) else d.sigma_mm}
+                             for d in unc.undetermined],
+            "noise_scale": self.refined.noise_scale,
+            "view_chi2": dict(zip(("chi2", "dof"), view_level_chi2(
+                [v for v, u in zip(self.views, self.used) if u], self.R, self.T))),
+            "linear": {"R": self.R_linear.tolist(), "T_mm": self.T_linear.tolist()},
+        }
+
+
+def _lies_along_plane(view: ViewData, R: np.ndarray, T: np.ndarray, sigma_mm: float) -> bool:
+    """A late view's gated returns are its board only if they run along the predicted plane:
+    RMS within ``3 sigma + 1 mm`` and no trend across the run beyond ``3 sigma`` (a scan line
+    that merely crosses the predicted plane leaves a short run with a steep trend)."""
+    r = plane_residuals_mm(view, R, T)
+    if np.sqrt(np.mean(r ** 2)) > 3.0 * sigma_mm + 1.0:
+        return False
+    p = view.points_mm
+    s = (p - p.mean(0)) @ (p[-1] - p[0]) / max(np.linalg.norm(p[-1] - p[0]), 1e-9)
+    b = np.polyfit(s, r, 1)[0] if np.ptp(s) > 0 else 0.0
+    return abs(b) * np.ptp(s) <= 3.0 * sigma_mm
+
+
+def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Signed distances (mm) of a view's board returns, mapped by ``(R, T)``, to the board
+    plane measured by the camera."""
+    p = view.points_mm
+    X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
+    return view.board.plane.distance(X)
+
+
+def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int = MIN_POINTS
+                  ) -> list[ViewData]:
+    """Board plane (with covariance) and candidate scan segments of every view pair."""
+    from .dataset import read_image
+
+    views = []
+    for pr in pairs:
+        img = read_image(pr.image_path, camera.image_size)
+        found = find_board(img, board)
+        if np.count_nonzero(np.isfinite(pr.range_mm)) < MIN_POINTS:
+            raise DatasetError(pr.scan_path, f"fewer than {MIN_POINTS} returns; check the file")
+        sig = local_line_noise(pr.angle_deg, pr.range_mm)
+        v = ViewData(pr.name, None, pr.angle_deg, pr.range_mm, max(sig, 0.3))
+        if not found:
+            v.note = (f"no {board.inner_corners[0]}x{board.inner_corners[1]} chessboard found in "
+                      f"{pr.image_path.name}")
+        else:  # the corner set that fits the board model best
+            v.board = min((board_plane(camera, c, b) for c, b in found), key=lambda bp: bp.sigma_px)
+            v.candidates = scan_segments(pr.angle_deg, pr.range_mm, sig, min_points)
+        views.append(v)
+    return views
+
+
+def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UNDETERMINED_MM,
+                     where: str | Path = ".") -> PlanesResult:
+    """Zhang & Pless calibration of prepared views (see the module docstring for the steps).
+
+    Raises :class:`DatasetError` (naming ``where``) when fewer than three views have a board
+    and a board segment.
+    """
+    rng = np.random.default_rng(seed)
+    warnings: list[str] = []
+    with_board = [i for i, v in enumerate(views) if v.board is not None]
+    for v in views:
+        if v.board is None:
+            warnings.append(f"{v.name}: {v.note}; view not used")
+        elif v.board.sigma_px > 1.0:
+            warnings.append(f"{v.name}: chessboard corners fit their board with {v.board.sigma_px:.2f}"
+                            " px RMS (> 1 px); check the photo (blur, wrong pattern, bent board)")
+    if len(with_board) < MIN_VIEWS:
+        raise DatasetError(where, f"only {len(with_board)} view(s) show the chessboard; at least "
+                                  f"{MIN_VIEWS} views with differently tilted boards are needed")
+    sub = [views[i] for i in with_board]
+    sv = np.linalg.svd(np.array([v.board.plane.normal for v in sub]), compute_uv=False)
+    if sv[1] < PARALLEL_LIMIT * sv[0]:
+        raise DatasetError(where, "every board is parallel to the others (normals within "
+                                  f"{np.degrees(np.arcsin(min(1.0, sv[1] / sv[0]))):.1f} deg): "
+                                  "the LiDAR's position in the boards' plane and its rotation about "
+                                  "their normal are undetermined; tilt the board differently in "
+                                  "some views")
+    tot = [float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2]))) for v in sub]
+    gates = [max(5.0 * t, 5.0) for t in tot]  # a rigid hypothesis from five right views: ~1-2 t
+    if len(sub) >= MIN_VIEWS_CONSENSUS:
+        choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
+                                       gates, rng)
+    else:  # too few views to cross-check: the segment with most returns in each scan
+        choice = [max(range(len(v.candidates)), key=lambda k: len(v.candidates[k].beams))
+                  if v.candidates else None for v in sub]
+        warnings.append(f"only {len(sub)} views: too few to cross-check which scan segment is the "
+                        f"board (>= {MIN_VIEWS_CONSENSUS} needed), so the segment with most returns "
+                        "was taken in each scan, and the linear start is underdetermined; check "
+                        "the projections, and add views")
+    chosen = [(v, v.candidates[c]) for v, c in zip(sub, choice) if c is not None]
+    if len(chosen) < MIN_VIEWS:
+        raise DatasetError(where, f"the scans of only {len(chosen)} view(s) agree on a board "
+                                  "segment; check that the scan plane crosses the board in every "
+                                  "view (and the pattern size), or add views")
+    R0, T0, _ = linear_extrinsics([s.points for _, s in chosen], [v.board.plane for v, _ in chosen])
+    R, T = R0, T0
+    seeds = {id(v): s.beams for v, s in chosen}
+    for v in sub:
+        v.beams = seeds.get(id(v), np.zeros(0, int))
+    ref = refine_extrinsics(sub, R0, T0)  # on the consensus segments alone
+    R, T = ref.R, ref.T
+    for factor in (6.0, 4.0):  # gate on the predicted plane and refine; then once more, tighter
+        for v, t in zip(sub, tot):
+            if id(v) in seeds:
+                v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T,
+                                            factor * t, seeds[id(v)])
+        ref = refine_extrinsics(sub, R, T, anchor=(R0, T0))
+        R, T = ref.R, ref.T
+    # views outside the first consensus: gated on the final prediction, kept if they agree
+    for v, t in zip(sub, tot):
+        if id(v) not in seeds:
+            v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, 4.0 * t)
+            if len(v.beams) >= MIN_POINTS and not _lies_along_plane(v, R, T, t):
+                v.beams = np.zeros(0, int)
+    used, rms = [], []
+    for v in views:
+        ok = v.board is not None and len(v.beams) >= MIN_POINTS
+        r = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2))) if ok else None
+        used.append(ok)
+        rms.append(r)
+    if sum(used) < MIN_VIEWS:
+        raise DatasetError(where, f"only {sum(used)} view(s) have board returns that agree with "
+                                  "their board plane; check that the scan plane crosses the board "
+                                  "in every view, or add views")
+    if any(u and id(v) not in seeds for v, u in zip(views, used)):
+        ref = refine_extrinsics([v for v, u in zip(views, used) if u], R, T,
+                                anchor=(R0, T0))
+        R, T = ref.R, ref.T
+    for k, v in enumerate(views):
+        if v.board is not None and not used[k]:
+            warnings.append(f"{v.name}: no board segment in the scan agrees with the board "
+                            "plane; view not used (does the scan plane cross the board?)")
+        if used[k]:
+            rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
+            expect = float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2])))
+            if rms[k] > 3.0 * expect + 1.0:
+                warnings.append(f"{v.name}: board returns are {rms[k]:.1f} mm RMS from the board "
+                                f"plane, > 3x the expected {expect:.1f} mm; check this view")
+    if ref.noise_scale > 3.0:
+        warnings.append(f"residuals are {ref.noise_scale:.1f}x the noise model (range noise and "
+                        "corner noise); the sigmas are scaled by it, but check for a bent board "
+                        "or a time offset between photo and scan")
+    pts = np.vstack([v.points_mm for v, u in zip(views, used) if u])
+    lever = float(np.sqrt(np.mean(np.sum(pts ** 2, axis=1))))
+    normals = np.array([v.board.plane.normal for v, u in zip(views, used) if u])
+    held = unobservable_directions(normals, R, T)
+    if held:  # refit with them held at the linear start (which leaves them at their minimum norm)
+        ref = refine_extrinsics([v for v, u in zip(views, used) if u], R0, T0,
+                                fixed=unobservable_directions(normals, R0, T0), lever_mm=lever)
+        R, T = ref.R, ref.T
+        warnings.append("the pose is given with its undetermined directions held at the linear "
+                        "solution's minimum-norm values; the determined part is conditional on "
+                        "them")
+        for k, v in enumerate(views):
+            if used[k]:
+                rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
+    chi2, dof = view_level_chi2([v for v, u in zip(views, used) if u], R, T)
+    if dof > 0:
+        birge = float(np.sqrt(max(1.0, chi2 / dof)))
+        if birge > ref.noise_scale:
+            ref = replace(ref, noise_scale=birge)
+        if birge > 2.0:
+            warnings.append(f"the views disagree with each other beyond the corner and range noise "
+                            f"(view-level chi2 {chi2:.0f} for {dof} degrees of freedom); the sigmas "
+                            f"are scaled by {birge:.1f} (likely causes: a bent board, a range bias "
+                            "on the black squares, corner bias near markers)")
+    else:
+        warnings.append(f"{sum(used)} views fix the six pose parameters exactly: nothing checks "
+                        "them; add views")
+    unc = pose_uncertainty(ref.information, ref.noise_scale, lever, limit_mm, held)
+    warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
+    return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)
+
+
+def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
+               seed: int = 0, limit_mm: float = UNDETERMINED_MM) -> PlanesResult:
+    """``lidarcal planes``: read the view pairs and the camera, calibrate."""
+    import json
+
+    from .dataset import parse_camera
+    from .io.pairs import read_view_pairs
+
+    cpath = Path(camera_json)
+    if not cpath.is_file():
+        raise DatasetError(cpath, "missing camera file; expected JSON with K, dist, image_size")
+    try:
+        cam = parse_camera(json.loads(cpath.read_text(encoding="utf-8-sig")), cpath)
+    except json.JSONDecodeError as e:
+        raise DatasetError(cpath, f"not valid JSON ({e})") from None
+    pairs = read_view_pairs(folder)
+    views = prepare_views(pairs, cam, board)
+    res = calibrate_planes(views, seed=seed, limit_mm=limit_mm, where=folder)
+    res.camera = cam  # type: ignore[attr-defined]
+    res.pairs = pairs  # type: ignore[attr-defined]
+    return res
+
+
+def write_extrinsics(res: PlanesResult, out: str | Path, command: str | None = None) -> Path:
+    """Write ``OUT/extrinsics.json`` atomically; returns its path."""
+    out = Path(out)
+    doc = res.to_dict()
+    if command:
+        doc["provenance"] = {"command": command}
+    path = out / "extrinsics.json"
+    write_json_atomic(path, doc)
+    return path
+
+
+def leave_one_out(views: list[ViewData], result: PlanesResult, seed: int = 0,
+                  names: list[str] | None = None) -> list[dict]:
+    """Calibrate on every used view but one; the held-out view's board returns (as chosen by
+    the full fit) are scored against its camera plane: ``{"name", "rms_mm", "in_sample_rms_mm"}``
+    per held-out view (all used views, or those in ``names``)."""
+    import copy
+
+    out = []
+    used = [k for k, u in enumerate(result.used) if u]
+    for k in used:
+        if names is not None and views[k].name not in names:
+            continue
+        others = [copy.copy(views[j]) for j in used if j != k]
+        for o in others:
+            o.beams = np.zeros(0, int)
+        r = calibrate_planes(others, seed=seed)
+        held = views[k]
+        res = plane_residuals_mm(held, r.R, r.T)
+        out.append({"name": held.name, "rms_mm": float(np.sqrt(np.mean(res ** 2))),
+                    "in_sample_rms_mm": result.rms_mm[k]})
+    return out
