@@ -205,11 +205,46 @@ def _check_pose(argv, p, cwd, out, truth):
 
 
 def _check_measure(argv, p, cwd, out, truth):
-    """All 10 discs of 140 mm; a 6-position calibration measures them to within 1 mm
-    (measured +0.20..+0.39 mm; the paper's mean absolute error was 2.77 mm)."""
+    """All 10 discs of 140 mm; a 6-position calibration measures them to within 1 mm (the
+    paper's mean absolute error was 2.77 mm); with ``--reference`` the named discs calibrate
+    the edge model (``source`` "reference") and are marked, without it the prior is used."""
     m = json.loads((out / "measurements.json").read_text())
     assert m["format"] == "lidarcal-measurements/1" and len(m["measurements"]) == 10
     assert all(abs(r["error_mm"]) < 1.0 for r in m["measurements"]), m["measurements"]
+    refs = argv[argv.index("--reference") + 1:] if "--reference" in argv else []
+    assert m["edge_model"]["source"] == ("reference" if refs else "prior")
+    assert m["edge_model"]["references"] == refs
+    assert [r["name"] for r in m["measurements"] if r["reference"]] == refs
+    for r in m["measurements"]:  # the documented formula, D = D_half - 2 k u
+        assert np.isclose(r["diameter_mm"], r["diameter_half_mm"]
+                          - 2 * m["edge_model"]["k"] * r["beam_spacing_mm"])
+
+
+def _check_check(argv, p, cwd, out, truth):
+    """Every detection succeeds (exit 0, checked by the caller); the contact sheet is written
+    in the current folder as ``<dataset name>-check.png``."""
+    sheet = cwd / f"{Path(argv[1]).name}-check.png"
+    assert sheet.is_file() and sheet.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", p.stdout
+
+
+def _check_cloud(argv, p, cwd, out, truth):
+    """The sweep's cloud in the camera frame: the returns inside the true disc's rim (less
+    3 mm) lie on its true plane (median distance under 3 mm: 1 mm range noise, a 6-position
+    calibration), and the attributes are the documented ones."""
+    from lidarcal.io.clouds import read_cloud
+
+    name = argv[argv.index("--sweep") + 1]
+    pts, attrs = read_cloud(cwd / argv[argv.index("--out") + 1])
+    assert {"range_mm", "psi_deg", "angle_deg"} <= set(attrs) and len(pts) > 1000
+    disc = next(d for d in truth["measurements"] if d["name"] == name)
+    c, n = np.array(disc["center_mm"]), np.array(disc["normal"])
+    rel = pts - c
+    along = rel @ n
+    radial = np.linalg.norm(rel - np.outer(along, n), axis=1)
+    on_disc = radial < disc["diameter_mm"] / 2 - 3.0
+    near = on_disc & (np.abs(along) < 20.0)
+    assert near.sum() > 500, near.sum()
+    assert np.median(np.abs(along[near])) < 3.0, np.median(np.abs(along[near]))
 
 
 def _check_report(argv, p, cwd, out, truth):
@@ -221,7 +256,7 @@ def _check_report(argv, p, cwd, out, truth):
 
 CHECKS = {"simulate": _check_simulate, "intrinsics": _check_intrinsics,
           "calibrate": _check_calibrate, "pose": _check_pose, "measure": _check_measure,
-          "report": _check_report}
+          "check": _check_check, "cloud": _check_cloud, "report": _check_report}
 
 
 def test_intrinsics_on_real_photos(tmp_path):
