@@ -1,0 +1,232 @@
+"""The joint fit itself: starts, robust passes, noise re-estimation, jitter, covariance."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..geometry import Plane
+from ..turntable import Axis
+from .data import JointData, joint_data
+from .jitter import angle_jitter
+from .model import JointModel
+from .params import (
+    CORNER_FLOOR_PX,
+    F_SCALE,
+    JITTER_LR,
+    MIN_POINTS_PER_BOARD,
+    N_BOARD,
+    N_RIG,
+    _Base,
+    _boards,
+    _rig,
+)
+from .problem import _Problem
+from .solver import _covariance, _rho, irls_lm
+
+
+def _start_bases(result_or_models, data: JointData, psi_ref: float) -> list[_Base]:
+    bases = []
+    for m in result_or_models:
+        if m is None:
+            continue
+        p = m.pose(psi_ref)
+        bases.append(_Base.make(m.axis.direction, m.axis.point, p.R, p.T, data.board_R, data.board_T))
+    if not bases:
+        raise ValueError("fit_joint needs a start model (rigid or paper)")
+    return bases
+
+
+def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
+                   loss: str = "soft_l1", psi_ref_deg: float | None = None,
+                   f_scale: float = F_SCALE, solver: str = "lm",
+                   correlated: bool = True,
+                   corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True) -> JointModel:
+    """Joint fit on prepared observations; ``starts`` are pose functions (axis + ``pose``).
+
+    See :func:`fit_joint`. Every start is refined once with the start's noise
+    scales and the lowest robust cost wins; then the noise scales are
+    re-estimated from the residuals, the stripe scale factors recomputed, and
+    the fit repeated (twice).
+    """
+    if data.n_positions < 2:
+        raise ValueError(f"the joint fit needs at least 2 positions, got {data.n_positions}")
+    if len(data.scan_xy) == 0:
+        raise ValueError("no scan points: the joint fit needs the board returns of the scans")
+    use_corners = fit_planes and data.corners_px is not None
+    if fit_planes and not use_corners:
+        raise ValueError("fit_planes=True needs the board corners and object points (v_board)")
+    psi_ref = float(np.mean(data.psi_deg)) if psi_ref_deg is None else float(psi_ref_deg)
+    bases = _start_bases(starts, data, psi_ref)
+    n_par = N_RIG + (2 * N_BOARD if fit_planes else 0)
+    x0 = np.zeros(n_par)
+
+    def _full(x):
+        return x if len(x) > N_RIG else np.concatenate([x, np.zeros(2 * N_BOARD)])
+
+    def solve(prob: _Problem, x: np.ndarray):
+        if solver == "scipy":
+            return least_squares(prob.normalised, x, jac=prob.jacobian, args=(use_corners,),
+                                 loss=loss, f_scale=f_scale, x_scale="jac", method="trf",
+                                 xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=100)
+        return irls_lm(lambda v: prob.normalised(v, use_corners),
+                       lambda v: prob.jacobian(v, use_corners), x, loss, f_scale)
+
+    sols = []
+    for base in bases:
+        prob = _Problem(data, base, psi_ref)
+        prob.set_stripe_scale(_full(x0))
+        prob.estimate_noise(x0, correlated=False)
+        sols.append((prob, solve(prob, x0)))
+    # costs are comparable only with the same noise model: rescore with the first start's
+    scores = []
+    for prob, sol in sols:
+        prob.scan, prob.stripe = sols[0][0].scan, sols[0][0].stripe
+        prob.sigma_corner = sols[0][0].sigma_corner
+        r = prob.normalised(_full(sol.x), use_corners)
+        scores.append(np.sum(_rho(r / f_scale, loss)))
+    best = int(np.argmin(scores))
+    prob, sol = sols[best]
+    x = sol.x
+
+    def refine(prob: _Problem, x: np.ndarray):
+        """Noise re-estimated at ``x``, outliers dropped, solved again."""
+        prob.set_stripe_scale(_full(x))
+        prob.estimate_noise(x, correlated)
+        prob.reject(_full(x))
+        return solve(prob, x)
+
+    for _ in range(2):
+        sol = refine(prob, x)
+        x = sol.x
+    # encoder jitter (beyond the paper): per-position angle corrections, then the rig again
+    t_reported = prob.t.copy()
+    jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated) if jitter else None
+    if jit is not None and jit["lr"] > JITTER_LR:
+        prob.t = t_reported + np.radians(jit["correction_deg"])
+        sol = refine(prob, x)
+        x = sol.x
+        jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated)
+    applied = jit is not None and jit["lr"] > JITTER_LR
+    t_final = t_reported + np.radians(jit["correction_deg"]) if applied else t_reported
+    # re-base at the solution so the covariance is about it (x = 0)
+    k, a, R_ref, T_ref = _rig(x, prob.base)
+    bR, bT = _boards(_full(x), prob.base)
+    base = _Base.make(k, a, R_ref, T_ref, bR, bT)
+    old = prob
+    prob = _Problem(data, base, psi_ref)
+    prob.t = t_final
+    prob.scale_px, prob.scan, prob.stripe = old.scale_px, old.scan, old.stripe
+    prob.sigma_corner = old.sigma_corner
+    prob.corner_floor_px = float(corner_floor_px)
+    cov, null, s2 = _covariance(prob, fit_planes, loss, f_scale)
+    axis = Axis.from_point_direction(base.a, base.k)
+    rs, rp, rc = prob.blocks(np.zeros(N_RIG + 2 * N_BOARD))
+    noise = {}
+    for name, grp, unit_ in (("scan", prob.scan, "mm"), ("stripe", prob.stripe, "px")):
+        for b in range(2):
+            noise[f"{name}{b}_{unit_}"] = float(grp.sigma[b])
+            noise[f"{name}{b}_offset_{unit_}"] = float(np.sqrt(grp.var0[b]))
+            noise[f"{name}{b}_tilt_{unit_}_per_{unit_}"] = float(np.sqrt(grp.var1[b]))
+    if data.corners_px is not None:
+        noise["corner_px"] = float(prob.sigma_corner)
+    corrections = {int(i): (float(c), float(e)) for i, c, e in
+                   zip(data.indices, jit["correction_deg"], jit["correction_sigma_deg"])} if applied else {}
+    jitter_deg = float(jit["sigma_deg"]) if applied else 0.0
+    model = JointModel(axis, psi_ref, base.R, base.T, cov, noise)
+    warn = joint_warnings(data, model, null)
+    info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
+            "status": int(sol.status), "start": best, "fit_planes": fit_planes,
+            "residuals": {"scan_mm": rs, "stripe_px": rp, "corner_px": rc},
+            "board_planes": tuple(Plane.from_normal_point(bR[j][:, 2], bT[j]) for j in range(2)),
+            "n_scan": len(rs), "n_stripe": len(rp), "stripes": len(data.stripe_px) > 0,
+            "rejected_scan": int((prob.scan.w == 0).sum()),
+            "rejected_stripe": int((prob.stripe.w == 0).sum()), "jitter": jit}
+    return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
+                      jitter_deg, corrections)
+
+
+
+def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None = None) -> list[str]:
+    """Warnings for weak setups (few positions, short sweep, axis ~ scan-plane normal, ...)."""
+    out = []
+    n = data.n_positions
+    span = float(np.ptp(data.psi_deg))
+    if n < 5:
+        out.append(f"only {n} positions: the joint fit has little redundancy; capture at least 5")
+    if span < 5.0:
+        out.append(f"turntable positions span only {span:.2f} deg: the axis is poorly determined; "
+                   "sweep at least ~5-10 deg")
+    z = model.R_ref[:, 2]
+    ang = np.degrees(np.arccos(min(abs(float(z @ model.axis.direction)), 1.0)))
+    if ang < 10.0:
+        out.append(f"the turntable axis is only {ang:.1f} deg from the scan-plane normal: turning "
+                   "barely moves the scan plane, the axis is weakly determined")
+    for b in range(2):
+        cnt = np.bincount(data.scan_pos[data.scan_board == b], minlength=n)
+        bad = np.flatnonzero(cnt < MIN_POINTS_PER_BOARD)
+        if len(bad):
+            out.append(f"board {b} has fewer than {MIN_POINTS_PER_BOARD} scan returns at "
+                       f"{len(bad)} position(s) (indices {data.indices[bad].tolist()[:10]}): "
+                       "only one board hit there")
+        if len(data.stripe_px):
+            cs = np.bincount(data.stripe_pos[data.stripe_board == b], minlength=n)
+            bad = np.flatnonzero(cs < MIN_POINTS_PER_BOARD)
+            if len(bad):
+                out.append(f"board {b} shows fewer than {MIN_POINTS_PER_BOARD} stripe centres at "
+                           f"{len(bad)} position(s) (indices {data.indices[bad].tolist()[:10]})")
+    if null is not None and null.shape[1]:
+        out.append(f"{null.shape[1]} combination(s) of the rig parameters are not determined by the "
+                   "data (rank-deficient Jacobian); their sigmas are reported as inf")
+    return out
+
+
+def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripes: bool = True,
+              correlated: bool = True, board_poses: str = "pnp", psi_ref_deg: float | None = None,
+              corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True) -> JointModel:
+    """Joint maximum-likelihood fit of the rig to all stripe pixels and scan points (beyond the paper).
+
+    Parameters
+    ----------
+    result : lidarcal.pipeline.CalibrationResult
+        Section 1 at every position (stripe centres, scan segments, single-shot
+        poses with their segment <-> board assignment) and the section-2 models
+        (``rigid_model``, ``paper_model``), used as starting points.
+    fit_planes : bool
+        Also refine both board poses (started from ``board_poses``); the
+        chessboard corners' reprojection residuals then enter the fit.
+    loss : str
+        Robust loss (scipy's names: "soft_l1", "huber", "cauchy", "arctan",
+        "linear"); residuals are in noise sigmas, the loss scale is ``F_SCALE``.
+    stripes : bool
+        False: scan points only (the Zhang-Pless style point-on-plane
+        calibration with the turntable model). With one V-board the scan alone
+        cannot see the LiDAR slide along the hinge: that direction stays at the
+        start and is reported with infinite sigma (and a warning).
+    correlated : bool
+        Model per-segment / per-stripe correlated errors (see the module doc);
+        False: white noise only (optimistic covariance on real stripe data).
+    board_poses : {"pnp", "homography"}
+        Which board poses (planes) to hold, or to start from with ``fit_planes``:
+        ``cv2.solvePnP`` (the corners' maximum-likelihood pose, default) or the
+        paper's homography (eqs. 2-3).
+    psi_ref_deg : float, optional
+        Reference angle of ``pose_ref`` (default: the mean psi).
+    corner_floor_px : float
+        Least per-coordinate corner error assumed for the planes' uncertainty.
+    jitter : bool
+        Estimate the turntable's angle jitter and correct each position's angle
+        when the data show one (:func:`angle_jitter`).
+
+    Returns
+    -------
+    JointModel
+        ``sigma(psi)`` gives 1-sigma uncertainties, ``warnings`` weak-setup warnings,
+        ``noise`` the estimated noise scales, ``info`` residuals and solver details.
+    """
+    data = joint_data(result, board_poses)
+    if not stripes:
+        data = data.without_stripes()
+    return fit_joint_data(data, [result.rigid_model, result.paper_model], fit_planes=fit_planes,
+                          loss=loss, psi_ref_deg=psi_ref_deg, correlated=correlated,
+                          corner_floor_px=corner_floor_px, jitter=jitter)
