@@ -402,6 +402,8 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
             out[f"poses_{name}"] = _pose_rows(res.fitted(m), psi, m)
     if res.joint_model is not None:
         out["sigma"] = sigma_block(res.joint_model, res.positions)
+    if res.method == "joint" and getattr(res.joint_model, "ranging", None) is not None:
+        out["ranging"] = res.joint_model.ranging.to_dict()  # lidarcal.ranging
     out.update({
         "boards": [{**b.plane.to_dict(), "reprojection_rms_px": float(b.reprojection_rms_px[0]),
                     "pnp": {**b.plane_pnp.to_dict(),

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -22,6 +22,9 @@ class JointData:
     homography; ``corners_px`` the detected corners per board and
     ``object_points`` (C, 3) the board coordinates (None: no corner residuals).
     ``samples``: the single-shot poses (section 1), for the start and warnings.
+    Ranging (:mod:`lidarcal.ranging`): ``board_spec`` and ``black_parity`` (per
+    board, :func:`lidarcal.ranging.black_parity`) let the fit tell which returns
+    hit a black square; ``scan_dark`` (M,) gives that directly instead (0..1, held).
     """
 
     camera: CameraModel
@@ -39,6 +42,9 @@ class JointData:
     corners_px: tuple[np.ndarray, np.ndarray] | None
     object_points: np.ndarray | None
     samples: list[Pose] = field(default_factory=list)
+    board_spec: BoardSpec | None = None
+    black_parity: tuple[int | None, int | None] | None = None
+    scan_dark: np.ndarray | None = None
 
     @property
     def n_positions(self) -> int:
@@ -47,9 +53,16 @@ class JointData:
     def without_stripes(self) -> JointData:
         """The same data with no stripe observations (the scan-only fit)."""
         e = np.zeros(0, int)
-        return JointData(self.camera, self.psi_deg, self.indices, self.scan_xy, self.scan_pos,
-                         self.scan_board, np.zeros((0, 2)), np.zeros((0, 3)), e, e, self.board_R,
-                         self.board_T, self.corners_px, self.object_points, self.samples)
+        return replace(self, stripe_px=np.zeros((0, 2)), stripe_rays=np.zeros((0, 3)),
+                       stripe_pos=e, stripe_board=e)
+
+    @property
+    def can_see_dark(self) -> bool:
+        """Whether the returns from black squares can be told (given, or board + colours known)."""
+        if self.scan_dark is not None:
+            return bool(np.any(self.scan_dark > 0) and np.any(self.scan_dark < 1))
+        return (self.board_spec is not None and self.black_parity is not None
+                and all(p is not None for p in self.black_parity))
 
 
 def _stripe_rays(camera: CameraModel, px: np.ndarray) -> np.ndarray:
@@ -61,7 +74,9 @@ def _stripe_rays(camera: CameraModel, px: np.ndarray) -> np.ndarray:
 def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray, np.ndarray]],
                      stripes: list[tuple[np.ndarray, np.ndarray]], board_R: np.ndarray,
                      board_T: np.ndarray, corners_px=None, object_points=None,
-                     samples: list[Pose] | None = None, indices=None) -> JointData:
+                     samples: list[Pose] | None = None, indices=None,
+                     board_spec: BoardSpec | None = None,
+                     black_parity: tuple[int | None, int | None] | None = None) -> JointData:
     """:class:`JointData` from per-position observations, already assigned to boards.
 
     Parameters
@@ -72,6 +87,10 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
         Stripe-centre pixels (distorted) on board 0 and board 1.
     board_R, board_T : arrays (2, 3, 3), (2, 3)
         Board poses (eq. 1); the planes are ``R[:, 2] . X = R[:, 2] . T``.
+    board_spec, black_parity : optional
+        The chessboard and which square parity is black on each board
+        (:func:`lidarcal.ranging.black_parity`): the fit then knows the returns
+        from black squares (ranging model).
     """
     psi = np.asarray(psi_deg, dtype=float).ravel()
     if len(scans) != len(psi) or len(stripes) != len(psi):
@@ -98,7 +117,8 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
                      cat(cb)[ok], np.asarray(board_R, float), np.asarray(board_T, float),
                      None if corners_px is None else tuple(np.asarray(c, float) for c in corners_px),
                      None if object_points is None else np.asarray(object_points, float),
-                     list(samples or []))
+                     list(samples or []), board_spec,
+                     None if black_parity is None else tuple(black_parity))
 
 
 def joint_data(result, board_poses: str = "homography") -> JointData:
@@ -121,8 +141,14 @@ def joint_data(result, board_poses: str = "homography") -> JointData:
     boards = result.boards
     spec: BoardSpec | None = getattr(getattr(result, "dataset", None), "v_board", None)
     obj = spec.object_points() if spec is not None else None
+    parity = None
+    if spec is not None:
+        from ..ranging import black_parity
+
+        parity = tuple(black_parity(b, result.camera, spec) for b in boards)
     return build_joint_data(result.camera, [p.psi_deg for p in result.positions], scans, stripes,
                             np.array([b.R_pnp if pnp else b.R for b in boards]),
                             np.array([b.T_pnp if pnp else b.T for b in boards]),
                             [b.corners_px for b in boards] if obj is not None else None, obj,
-                            [p.pose for p in result.positions], [p.index for p in result.positions])
+                            [p.pose for p in result.positions], [p.index for p in result.positions],
+                            spec, parity)

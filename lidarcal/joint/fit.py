@@ -6,6 +6,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..geometry import Plane
+from ..ranging import DATA_SHARE, RangingModel, RangingPrior
+from ..ranging import ranging_prior as _ranging_prior
 from ..turntable import Axis
 from .data import JointData, joint_data
 from .jitter import angle_jitter
@@ -41,13 +43,17 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
                    loss: str = "soft_l1", psi_ref_deg: float | None = None,
                    f_scale: float = F_SCALE, solver: str = "lm",
                    correlated: bool = True,
-                   corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True) -> JointModel:
+                   corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True,
+                   ranging: bool = True, ranging_prior: RangingPrior | None = None) -> JointModel:
     """Joint fit on prepared observations; ``starts`` are pose functions (axis + ``pose``).
 
     See :func:`fit_joint`. Every start is refined once with the start's noise
     scales and the lowest robust cost wins; then the noise scales are
     re-estimated from the residuals, the stripe scale factors recomputed, and
-    the fit repeated (twice).
+    the fit repeated (twice). With ``ranging`` the range offset (and, when the
+    data tell the returns from black squares, the dark-square extra) are
+    estimated with the rig (:mod:`lidarcal.ranging`), under ``ranging_prior``
+    (default: the wide :class:`lidarcal.ranging.RangingPrior`).
     """
     if data.n_positions < 2:
         raise ValueError(f"the joint fit needs at least 2 positions, got {data.n_positions}")
@@ -58,11 +64,18 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         raise ValueError("fit_planes=True needs the board corners and object points (v_board)")
     psi_ref = float(np.mean(data.psi_deg)) if psi_ref_deg is None else float(psi_ref_deg)
     bases = _start_bases(starts, data, psi_ref)
-    n_par = N_RIG + (2 * N_BOARD if fit_planes else 0)
+    prior = ranging_prior or RangingPrior()
+    n_rng = (2 if data.can_see_dark else 1) if ranging else 0
+    prior_arrays = (np.array([prior.offset_mm, prior.dark_extra_mm]),
+                    np.array([prior.offset_sigma_mm, prior.dark_extra_sigma_mm]))
+    n_par = N_RIG + (2 * N_BOARD if fit_planes else 0) + n_rng
     x0 = np.zeros(n_par)
 
     def _full(x):
-        return x if len(x) > N_RIG else np.concatenate([x, np.zeros(2 * N_BOARD)])
+        """[rig | boards | ranging] with zero board steps when the boards are held."""
+        if fit_planes:
+            return x
+        return np.concatenate([x[:N_RIG], np.zeros(2 * N_BOARD), x[N_RIG:]])
 
     def solve(prob: _Problem, x: np.ndarray):
         if solver == "scipy":
@@ -74,7 +87,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
 
     sols = []
     for base in bases:
-        prob = _Problem(data, base, psi_ref)
+        prob = _Problem(data, base, psi_ref, n_rng, prior_arrays)
+        prob.classify(_full(x0))
         prob.set_stripe_scale(_full(x0))
         prob.estimate_noise(x0, correlated=False)
         sols.append((prob, solve(prob, x0)))
@@ -91,6 +105,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
 
     def refine(prob: _Problem, x: np.ndarray):
         """Noise re-estimated at ``x``, outliers dropped, solved again."""
+        prob.classify(_full(x))
         prob.set_stripe_scale(_full(x))
         prob.estimate_noise(x, correlated)
         prob.reject(_full(x))
@@ -110,18 +125,20 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     applied = jit is not None and jit["lr"] > JITTER_LR
     t_final = t_reported + np.radians(jit["correction_deg"]) if applied else t_reported
     # re-base at the solution so the covariance is about it (x = 0)
-    k, a, R_ref, T_ref = _rig(x, prob.base)
-    bR, bT = _boards(_full(x), prob.base)
-    base = _Base.make(k, a, R_ref, T_ref, bR, bT)
+    xr, rv = prob.split(_full(x))
+    k, a, R_ref, T_ref = _rig(xr, prob.base)
+    bR, bT = _boards(xr, prob.base)
+    base = _Base.make(k, a, R_ref, T_ref, bR, bT, rv)
     old = prob
-    prob = _Problem(data, base, psi_ref)
+    prob = _Problem(data, base, psi_ref, n_rng, prior_arrays)
     prob.t = t_final
-    prob.scale_px, prob.scan, prob.stripe = old.scale_px, old.scan, old.stripe
+    prob.scale_px, prob.scan, prob.stripe, prob.dark = old.scale_px, old.scan, old.stripe, old.dark
     prob.sigma_corner = old.sigma_corner
     prob.corner_floor_px = float(corner_floor_px)
-    cov, null, s2 = _covariance(prob, fit_planes, loss, f_scale)
+    cov_all, null_all, s2 = _covariance(prob, fit_planes, loss, f_scale)
+    cov, null = cov_all[:N_RIG, :N_RIG], null_all[:N_RIG]
     axis = Axis.from_point_direction(base.a, base.k)
-    rs, rp, rc = prob.blocks(np.zeros(N_RIG + 2 * N_BOARD))
+    rs, rp, rc = prob.blocks(np.zeros(N_RIG + 2 * N_BOARD + n_rng))
     noise = {}
     for name, grp, unit_ in (("scan", prob.scan, "mm"), ("stripe", prob.stripe, "px")):
         for b in range(2):
@@ -135,15 +152,55 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     jitter_deg = float(jit["sigma_deg"]) if applied else 0.0
     model = JointModel(axis, psi_ref, base.R, base.T, cov, noise)
     warn = joint_warnings(data, model, null)
+    rmodel = None
+    if n_rng:
+        rmodel, rwarn = _ranging_model(rv, cov_all[N_RIG:, N_RIG:],
+                                       (cov_all if prob.sandwich is None else prob.sandwich)[N_RIG:, N_RIG:], n_rng,
+                                       prior, prob.dark)
+        warn += rwarn
     info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
             "status": int(sol.status), "start": best, "fit_planes": fit_planes,
             "residuals": {"scan_mm": rs, "stripe_px": rp, "corner_px": rc},
             "board_planes": tuple(Plane.from_normal_point(bR[j][:, 2], bT[j]) for j in range(2)),
             "n_scan": len(rs), "n_stripe": len(rp), "stripes": len(data.stripe_px) > 0,
             "rejected_scan": int((prob.scan.w == 0).sum()),
-            "rejected_stripe": int((prob.stripe.w == 0).sum()), "jitter": jit}
+            "rejected_stripe": int((prob.stripe.w == 0).sum()), "jitter": jit,
+            "scan_dark": prob.dark, "ranging_covariance": cov_all[N_RIG:, N_RIG:],
+            "ranging_rig_covariance": cov_all[N_RIG:, :N_RIG]}
     return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
-                      jitter_deg, corrections)
+                      jitter_deg, corrections, rmodel)
+
+
+def _ranging_model(rv: np.ndarray, cov: np.ndarray, robust_cov: np.ndarray, n_rng: int,
+                   prior: RangingPrior, dark: np.ndarray) -> tuple[RangingModel, list[str]]:
+    """The fitted ranging terms with their 1-sigma, and a warning for each term the data do
+    not determine (posterior sigma above ``DATA_SHARE`` of the prior's: the prior decides).
+
+    Each sigma is the larger of the model's and the cluster-robust one (positions as
+    clusters, :func:`lidarcal.joint.solver._cluster_covariance`)."""
+    sig = np.sqrt(np.maximum(np.clip(np.diag(cov), 0, None), np.clip(np.diag(robust_cov), 0, None)))
+    prior_sig = (prior.offset_sigma_mm, prior.dark_extra_sigma_mm)
+    names = ("offset", "dark_extra")[:n_rng]
+    determined, warn = [], []
+    src = (f"dataset.json lidar.range_offset_mm = {prior.offset_mm:g} +- {prior.offset_sigma_mm:g} mm"
+           if prior.source == "dataset.json" else
+           f"a wide default prior of 0 +- {prior.offset_sigma_mm:g} mm (dataset.json gives no "
+           "lidar.range_offset_mm / range_offset_sigma_mm: give the datasheet's systematic error)")
+    for j, name in enumerate(names):
+        if not np.isfinite(sig[j]) or sig[j] > DATA_SHARE * prior_sig[j]:
+            what = ("the range offset" if j == 0 else
+                    f"the extra range of dark squares ({int(np.sum(dark > 0))} returns on black "
+                    "squares)")
+            warn.append(f"the data do not separate {what} from the rig (posterior sigma "
+                        f"{sig[j]:.3g} mm against the prior's {prior_sig[j]:g} mm): "
+                        + (f"{src} decides it, and its sigma is in every rig sigma" if j == 0 else
+                           f"a wide prior of 0 +- {prior_sig[j]:g} mm decides it"))
+        else:
+            determined.append(name)
+    rm = RangingModel(float(rv[0]), float(sig[0]), float(rv[1]) if n_rng > 1 else 0.0,
+                      float(sig[1]) if n_rng > 1 else 0.0, prior=prior, estimated=names,
+                      determined=tuple(determined))
+    return rm, warn
 
 
 
@@ -183,7 +240,8 @@ def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None =
 
 def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripes: bool = True,
               correlated: bool = True, board_poses: str = "pnp", psi_ref_deg: float | None = None,
-              corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True) -> JointModel:
+              corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True,
+              ranging: bool = True, ranging_prior: RangingPrior | None = None) -> JointModel:
     """Joint maximum-likelihood fit of the rig to all stripe pixels and scan points (beyond the paper).
 
     Parameters
@@ -217,6 +275,12 @@ def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripe
     jitter : bool
         Estimate the turntable's angle jitter and correct each position's angle
         when the data show one (:func:`angle_jitter`).
+    ranging : bool
+        Estimate the LiDAR's range offset and the extra range of returns from
+        black squares with the rig (:mod:`lidarcal.ranging`); False: ranges exact.
+    ranging_prior : RangingPrior, optional
+        Prior of the ranging terms; default from the dataset's ``lidar``
+        (``range_offset_mm``, ``range_offset_sigma_mm``) or the wide default.
 
     Returns
     -------
@@ -227,6 +291,10 @@ def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripe
     data = joint_data(result, board_poses)
     if not stripes:
         data = data.without_stripes()
+    ds = getattr(result, "dataset", None)
+    if ranging_prior is None and getattr(ds, "raw", None) is not None:
+        ranging_prior = _ranging_prior(ds.raw, ds.dataset_json)
     return fit_joint_data(data, [result.rigid_model, result.paper_model], fit_planes=fit_planes,
                           loss=loss, psi_ref_deg=psi_ref_deg, correlated=correlated,
-                          corner_floor_px=corner_floor_px, jitter=jitter)
+                          corner_floor_px=corner_floor_px, jitter=jitter, ranging=ranging,
+                          ranging_prior=ranging_prior)

@@ -27,8 +27,10 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
     prob.t = t0 - h
     rm = prob.normalised(x, False)
     prob.t = t0
-    J = (rp - rm) / (2 * h)
     pos = np.concatenate([d.scan_pos, d.stripe_pos])
+    m = len(pos)  # the ranging prior's pseudo-residuals follow: they do not move with t
+    r0, rp, rm = r0[:m], rp[:m], rm[:m]
+    J = (rp - rm) / (2 * h)
     w = _irls_weights(r0 / f_scale, loss)
     n = d.n_positions
     s2 = max(float(np.sum(w * r0 * r0)) / max(len(r0) - N_RIG - n, 1), 1.0)

@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..geometry import Pose
+from ..ranging import RangingModel
 from ..turntable import Axis, RigidModel
 from .params import _STEPS, N_RIG, _Base, _poses, _rig
 
@@ -30,6 +31,9 @@ class JointModel:
     angle jitter (1-sigma; 0: none detected) and ``angle_corrections`` maps a
     dataset position index to its angle correction and that correction's
     1-sigma (deg): the turntable stood at ``psi + correction`` (:func:`angle_jitter`).
+    ``ranging`` (:class:`lidarcal.ranging.RangingModel`): the range offset and
+    dark-square extra fitted with the rig (None: ranges taken as exact); ``cov``
+    is then marginal over them. Serialised as calibration.json ``ranging``.
     """
 
     axis: Axis
@@ -42,6 +46,7 @@ class JointModel:
     info: dict = field(default_factory=dict, repr=False)
     jitter_deg: float = 0.0
     angle_corrections: dict = field(default_factory=dict)
+    ranging: RangingModel | None = None
 
     @property
     def rigid(self) -> RigidModel:
@@ -136,7 +141,8 @@ class JointModel:
                     "sigma_deg": float(self.jitter_deg),
                     "positions": [{"index": i, "correction_deg": c, "sigma_deg": e}
                                   for i, (c, e) in sorted(self.angle_corrections.items())]}}
-                   if self.angle_corrections else {})}
+                   if self.angle_corrections else {}),
+                **({"ranging": self.ranging.to_dict()} if self.ranging is not None else {})}
 
     @staticmethod
     def from_dict(d: dict) -> JointModel:
@@ -149,7 +155,8 @@ class JointModel:
                           dict(d.get("noise", {})), tuple(d.get("warnings", ())), {"null": null},
                           float(jit.get("sigma_deg", 0.0)),
                           {int(r["index"]): (float(r["correction_deg"]), float(r["sigma_deg"]))
-                           for r in jit.get("positions", [])})
+                           for r in jit.get("positions", [])},
+                          RangingModel.from_dict(d["ranging"]) if d.get("ranging") else None)
 
 
 def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray

@@ -13,6 +13,7 @@ MAD_TO_SIGMA = 1.4826
 _CHI1_MEDIAN = 0.45493642311957283  # median of the chi-square distribution with 1 dof
 N_RIG = 10  # axis direction 2, axis point 2, reference rotation 3, reference centre 3
 N_BOARD = 6  # per board: rotation 3, translation 3
+N_RANGING = 2  # range offset, dark-square extra (mm); the last entries of a parameter vector
 F_SCALE = 2.5  # robust loss scale, in noise sigmas
 CLIP_SIGMAS = 4.0  # residuals beyond this many sigmas do not enter the group moments
 SIGNIFICANCE = 3.0  # a correlated-noise component enters when this many sigmas above zero
@@ -35,13 +36,15 @@ class _Base:
     T: np.ndarray
     board_R: np.ndarray  # (2, 3, 3)
     board_T: np.ndarray  # (2, 3)
+    ranging: np.ndarray  # (2,) range offset, dark-square extra (mm)
 
     @staticmethod
-    def make(k, a, R, T, board_R, board_T) -> _Base:
+    def make(k, a, R, T, board_R, board_T, ranging=(0.0, 0.0)) -> _Base:
         k = unit(np.asarray(k, dtype=float))
         a = np.asarray(a, dtype=float)
         return _Base(k, plane_basis(k), a - (a @ k) * k, np.asarray(R, float), np.asarray(T, float),
-                     np.asarray(board_R, float), np.asarray(board_T, float))
+                     np.asarray(board_R, float), np.asarray(board_T, float),
+                     np.asarray(ranging, float).copy())
 
 
 def _rig(x: np.ndarray, base: _Base):

@@ -11,6 +11,7 @@ from .noise import _Groups
 from .params import (
     _STEPS,
     N_BOARD,
+    N_RANGING,
     N_RIG,
     REJECT_SIGMAS,
     _Base,
@@ -23,11 +24,25 @@ from .params import (
 
 
 class _Problem:
-    """Residual blocks of the joint fit for full parameter vectors (rig 10 + boards 12)."""
+    """Residual blocks of the joint fit.
 
-    def __init__(self, data: JointData, base: _Base, psi_ref_deg: float):
+    Parameter vectors are ``[rig 10 | boards 12 (optional) | ranging n_ranging]``:
+    the last ``n_ranging`` entries (0, 1: range offset, 2: and the dark-square
+    extra, mm, :mod:`lidarcal.ranging`) are steps from ``base.ranging``. The
+    ranging prior enters as ``n_ranging`` pseudo-residuals after the stripes.
+    """
+
+    def __init__(self, data: JointData, base: _Base, psi_ref_deg: float, n_ranging: int = 0,
+                 prior: tuple[np.ndarray, np.ndarray] | None = None):
         self.data = data
         self.base = base
+        self.n_ranging = int(n_ranging)
+        mean, sig = prior if prior is not None else (np.zeros(N_RANGING), np.full(N_RANGING, np.inf))
+        self.prior_mean, self.prior_sigma = np.asarray(mean, float), np.asarray(sig, float)
+        rho = np.linalg.norm(data.scan_xy, axis=1)
+        self.scan_u = data.scan_xy / np.where(rho > 0, rho, 1.0)[:, None]  # beam directions
+        self.dark = (np.zeros(len(data.scan_xy)) if data.scan_dark is None
+                     else np.asarray(data.scan_dark, float))
         self.t = np.radians(data.psi_deg - psi_ref_deg)
         self.scale_px = np.ones(len(data.stripe_px))
         n = data.n_positions
@@ -35,6 +50,41 @@ class _Problem:
         self.stripe = _Groups(data.stripe_pos, data.stripe_board, data.stripe_px, n)
         self.sigma_corner = 1.0
         self.corner_floor_px = 0.0
+        self.sandwich: np.ndarray | None = None  # cluster-robust covariance (solver._covariance)
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rig + boards part of ``x``, ranging terms (2,) in mm)."""
+        m = len(x) - self.n_ranging
+        rv = self.base.ranging.copy()
+        rv[:self.n_ranging] += x[m:]
+        return x[:m], rv
+
+    def classify(self, x: np.ndarray) -> None:
+        """Which returns hit a black square (:func:`lidarcal.ranging.dark_returns`), with the
+        LiDAR poses and board poses at ``x``; held when the data give ``scan_dark``."""
+        d = self.data
+        if d.scan_dark is not None or not d.can_see_dark:
+            return
+        from ..ranging import dark_returns
+
+        xr, _ = self.split(x)
+        R, T = _poses(*_rig(xr, self.base), self.t)
+        bR, bT = _boards(xr, self.base)
+        p, u = d.scan_pos, self.scan_u
+        dirs = R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:]
+        dark = np.zeros(len(p))
+        for b in range(2):
+            m = d.scan_board == b
+            dark[m] = dark_returns(T[p[m]], dirs[m], bR[b], bT[b], d.board_spec, d.black_parity[b])
+        self.dark = dark
+
+    def prior_residuals(self, x: np.ndarray) -> np.ndarray:
+        """``(term - prior mean) / prior sigma`` of the estimated ranging terms."""
+        if self.n_ranging == 0:
+            return np.zeros(0)
+        _, rv = self.split(x)
+        k = self.n_ranging
+        return (rv[:k] - self.prior_mean[:k]) / self.prior_sigma[:k]
 
     def estimate_noise(self, x: np.ndarray, correlated: bool) -> None:
         """Noise scales of every residual kind from the residuals at ``x`` (:meth:`_Groups.estimate`);
@@ -61,14 +111,17 @@ class _Problem:
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Raw residuals: scan (mm), stripe (px), corners (px, x and y interleaved)."""
         d = self.data
+        x, rv = self.split(x)
         k, a, R_ref, T_ref = _rig(x, self.base)
         R, T = _poses(k, a, R_ref, T_ref, self.t)
         bR, bT = _boards(x, self.base)
         n = bR[:, :, 2]
         dd = np.einsum("ij,ij->i", n, bT)
-        # scan points in the camera frame, eq. (28), against their board's plane, eq. (3)
+        # scan points (ranges corrected by the ranging model) in the camera frame, eq. (28),
+        # against their board's plane, eq. (3)
         p, b = d.scan_pos, d.scan_board
-        X = R[p, :, 0] * d.scan_xy[:, :1] + R[p, :, 1] * d.scan_xy[:, 1:] + T[p]
+        xy = self.scan_xy(rv)
+        X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
         r_scan = np.einsum("ij,ij->i", X, n[b]) - dd[b]
         # stripe centres back-projected onto their board (eq. 5), against the laser plane
         p, b = d.stripe_pos, d.stripe_board
@@ -78,6 +131,12 @@ class _Problem:
         r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.scale_px
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
         return r_scan, r_stripe, r_corner
+
+    def scan_xy(self, rv: np.ndarray) -> np.ndarray:
+        """Scan points with ranges corrected: ``(rho - offset - dark_extra * dark) u``."""
+        if not np.any(rv):
+            return self.data.scan_xy
+        return self.data.scan_xy - (rv[0] + rv[1] * self.dark)[:, None] * self.scan_u
 
     def jacobian(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
         """Jacobian of :meth:`normalised` wrt the full parameters (rig 10 + boards 12).
@@ -89,6 +148,8 @@ class _Problem:
         """
         d = self.data
         n_par = len(x)
+        x, rv = self.split(x)
+        n_main = len(x)  # rig (+ boards); the ranging columns follow
         k, a, R_ref, T_ref = _rig(x, self.base)
         R, T = _poses(k, a, R_ref, T_ref, self.t)
         bR, bT = _boards(x, self.base)
@@ -98,7 +159,7 @@ class _Problem:
         h = _STEPS[:N_RIG]
         G = np.zeros((len(self.t), 12, N_RIG))
         for j in range(N_RIG):
-            dx = np.zeros(n_par)
+            dx = np.zeros(n_main)
             dx[j] = h[j]
             Rp, Tp = _poses(*_rig(x + dx, self.base), self.t)
             Rm, Tm = _poses(*_rig(x - dx, self.base), self.t)
@@ -106,10 +167,10 @@ class _Problem:
                           - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
         # d (normal, d) of both boards / d board parameters: (2, 4, 6)
         Gb = np.zeros((2, 4, N_BOARD))
-        if n_par > N_RIG:
+        if n_main > N_RIG:
             for j in range(N_BOARD):
                 for b in range(2):
-                    dx = np.zeros(n_par)
+                    dx = np.zeros(n_main)
                     i = N_RIG + b * N_BOARD + j
                     dx[i] = _STEPS[i]
                     Rp, Tp = _boards(x + dx, self.base)
@@ -118,14 +179,21 @@ class _Problem:
                     fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
                     Gb[b, :, j] = (fp - fm) / (2 * _STEPS[i])
         blocks = []
-        # scan: r = n_b . (R_x x + R_y y + T) - d_b
+        # scan: r = n_b . (R_x x + R_y y + T) - d_b, (x, y) = (rho - offset - extra dark) u
         p, b = d.scan_pos, d.scan_board
-        xs, ys = d.scan_xy[:, :1], d.scan_xy[:, 1:]
+        xy = self.scan_xy(rv)
+        xs, ys = xy[:, :1], xy[:, 1:]
         n = nb[b]
         dr = np.concatenate([n * xs, n * ys, np.zeros((len(p), 3)), n], 1)  # wrt [Rx Ry Rz T]
         Js = np.zeros((len(p), n_par))
         Js[:, :N_RIG] = _rows_times(dr, G, p)
-        if n_par > N_RIG:
+        if self.n_ranging:
+            u = self.scan_u
+            du = -np.einsum("ij,ij->i", n, R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:])
+            Js[:, n_main] = du
+            if self.n_ranging > 1:
+                Js[:, n_main + 1] = du * self.dark
+        if n_main > N_RIG:
             X = R[p, :, 0] * xs + R[p, :, 1] * ys + T[p]
             drb = np.concatenate([X, -np.ones((len(p), 1))], 1)  # wrt [n, d]
             for bb in range(2):
@@ -142,7 +210,7 @@ class _Problem:
         dr = np.concatenate([np.zeros((len(p), 6)), (P - T[p]) * s, -z * s], 1)
         Jp = np.zeros((len(p), n_par))
         Jp[:, :N_RIG] = _rows_times(dr, G, p)
-        if n_par > N_RIG:
+        if n_main > N_RIG:
             zr = np.einsum("ij,ij->i", z, ray)[:, None]
             drb = np.concatenate([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn], 1)
             for bb in range(2):
@@ -150,11 +218,15 @@ class _Problem:
                 c = N_RIG + bb * N_BOARD
                 Jp[m, c:c + N_BOARD] = _mm(drb[m], Gb[bb])
         blocks.append(self.stripe.whiten_columns(Jp) * self.stripe.w[:, None])
+        if self.n_ranging:  # prior pseudo-residuals
+            Jr = np.zeros((self.n_ranging, n_par))
+            Jr[:, n_main:] = np.diag(1 / self.prior_sigma[:self.n_ranging])
+            blocks.append(Jr)
         if use_corners:
             m = len(self.corner_residuals(bR, bT))
             Jc = np.zeros((m, n_par))
-            for i in range(N_RIG, n_par):
-                dx = np.zeros(n_par)
+            for i in range(N_RIG, n_main):
+                dx = np.zeros(n_main)
                 dx[i] = _STEPS[i]
                 Jc[:, i] = (self.corner_residuals(*_boards(x + dx, self.base))
                             - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
@@ -175,7 +247,8 @@ class _Problem:
 
     def normalised(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
         r = self.blocks(x, corners=use_corners)
-        parts = [self.scan.whiten(r[0]) * self.scan.w, self.stripe.whiten(r[1]) * self.stripe.w]
+        parts = [self.scan.whiten(r[0]) * self.scan.w, self.stripe.whiten(r[1]) * self.stripe.w,
+                 self.prior_residuals(x)]
         if use_corners:
             parts.append(r[2] / self.sigma_corner)
         return np.concatenate(parts)
@@ -185,6 +258,7 @@ class _Problem:
         d = self.data
         if len(d.stripe_px) == 0:
             return
+        x, _ = self.split(x)
         k, a, R_ref, T_ref = _rig(x, self.base)
         R, _ = _poses(k, a, R_ref, T_ref, self.t)
         bR, bT = _boards(x, self.base)

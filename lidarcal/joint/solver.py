@@ -100,44 +100,69 @@ def _irls_weights(z: np.ndarray, loss: str) -> np.ndarray:
 
 
 def _jacobian(prob: _Problem, n_board: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Central-difference Jacobian of the normalised residuals (scan, stripe, corners) wrt
-    rig (10) and board (12) parameters, at x = 0. Returns (residuals, J)."""
-    n = N_RIG + 2 * N_BOARD
+    """Jacobian of the normalised residuals (scan, stripe, ranging prior, corners) wrt rig
+    (10), board (12) and ranging (``prob.n_ranging``) parameters, at x = 0. Returns (residuals, J)."""
+    n = N_RIG + 2 * N_BOARD + prob.n_ranging
     x0 = np.zeros(n)
     return prob.normalised(x0, True), prob.jacobian(x0, True)
 
 
 def _covariance(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
                 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Covariance (10, 10) of the rig parameters, the unobservable directions (10, q), s^2."""
+    """Covariance (10 + n_ranging, 10 + n_ranging) of the rig and ranging parameters, the
+    unobservable directions (10 + n_ranging, q), s^2. The rig block is marginal over the
+    ranging terms: estimating them shows as larger rig sigmas."""
     r, J = _jacobian(prob, True)
     n_main = len(r) - len(prob.corner_residuals(prob.base.board_R, prob.base.board_T))
     w = _irls_weights(r / f_scale, loss)
     Jw = J * np.sqrt(w)[:, None]
     has_corners = prob.data.corners_px is not None and prob.data.object_points is not None
     m_used = len(r) if (fit_planes or has_corners) else n_main
-    n_used = N_RIG + (2 * N_BOARD if fit_planes else 0)
+    n_used = N_RIG + (2 * N_BOARD if fit_planes else 0) + prob.n_ranging
     s2 = float(np.sum(w * r * r) / max(m_used - n_used, 1))
     s2 = max(s2, 1.0)  # the noise scales are estimated: never shrink below them
     # corner errors of chessboard detectors are correlated over the board: the pose absorbs
     # their low-order part, so the residual scale understates the plane error; the planes'
     # information uses at least ``corner_floor_px`` per coordinate
     Jw[n_main:] *= prob.sigma_corner / max(prob.sigma_corner, prob.corner_floor_px)
+    xi = np.r_[0:N_RIG, N_RIG + 2 * N_BOARD:J.shape[1]]  # rig + ranging columns
+    bi = np.arange(N_RIG, N_RIG + 2 * N_BOARD)
+    Jx, Jb = Jw[:n_main][:, xi], Jw[:n_main][:, bi]
+    Hx_inv, null = _inverse(_mm(Jx.T, Jx))
+    prob.sandwich = _cluster_covariance(prob, Jx, r[:n_main] * np.sqrt(w[:n_main]), Hx_inv)
     if fit_planes:
         H = _mm(Jw.T, Jw)
         C, null = _inverse(H)
-        return s2 * C[:N_RIG, :N_RIG], null[:N_RIG], s2
+        return s2 * C[np.ix_(xi, xi)], null[xi], s2
     # planes held fixed: rig covariance from scans + stripes, plus the planes' own
     # uncertainty from the corners propagated ("consider" covariance)
-    Jx, Jb = Jw[:n_main, :N_RIG], Jw[:n_main, N_RIG:]
-    Hx_inv, null = _inverse(_mm(Jx.T, Jx))
     C = Hx_inv
     if has_corners:
-        Jc = Jw[n_main:, N_RIG:]
+        Jc = Jw[n_main:][:, bi]
         Pb, _ = _inverse(_mm(Jc.T, Jc))
         A = Hx_inv @ _mm(Jx.T, Jb)
         C = C + A @ Pb @ A.T
     return s2 * C, null, s2
+
+
+def _cluster_covariance(prob: _Problem, Jx: np.ndarray, rw: np.ndarray, H_inv: np.ndarray
+                        ) -> np.ndarray:
+    """Cluster-robust ("sandwich") covariance ``H^-1 (sum_i g_i g_i^T) H^-1 G / (G - 1)`` with
+    ``g_i`` the score of position ``i`` (its rows of ``Jx^T r``, whitened, robust-weighted).
+
+    It does not trust the noise model: a systematic error the model lacks (e.g. a
+    dark-square bias that is not one constant) shows as scores that disagree between
+    positions. Used as a floor for the ranging terms' sigmas.
+    """
+    d = prob.data
+    pos = np.concatenate([d.scan_pos, d.stripe_pos])
+    m = len(pos)
+    n = d.n_positions
+    S = np.zeros((n, Jx.shape[1]))
+    np.add.at(S, pos, Jx[:m] * rw[:m, None])
+    G = int(np.count_nonzero(np.any(S != 0, axis=1)))
+    meat = _mm(S.T, S) * (G / max(G - 1, 1))
+    return H_inv @ meat @ H_inv
 
 
 def _inverse(H: np.ndarray, rcond: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
