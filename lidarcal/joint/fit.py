@@ -182,10 +182,14 @@ def _ranging_model(rv: np.ndarray, cov: np.ndarray, robust_cov: np.ndarray, n_rn
     prior_sig = (prior.offset_sigma_mm, prior.dark_extra_sigma_mm)
     names = ("offset", "dark_extra")[:n_rng]
     determined, warn = [], []
-    src = (f"dataset.json lidar.range_offset_mm = {prior.offset_mm:g} +- {prior.offset_sigma_mm:g} mm"
-           if prior.source == "dataset.json" else
-           f"a wide default prior of 0 +- {prior.offset_sigma_mm:g} mm (dataset.json gives no "
-           "lidar.range_offset_mm / range_offset_sigma_mm: give the datasheet's systematic error)")
+    if prior.source == "dataset.json":
+        src = (f"dataset.json lidar.range_offset_mm = {prior.offset_mm:g} +- "
+               f"{prior.offset_sigma_mm:g} mm")
+    elif prior.source == "default":
+        src = (f"a wide default prior of 0 +- {prior.offset_sigma_mm:g} mm (dataset.json gives no "
+               "lidar.range_offset_mm / range_offset_sigma_mm: give the datasheet's systematic error)")
+    else:
+        src = f"the {prior.source} prior {prior.offset_mm:g} +- {prior.offset_sigma_mm:g} mm"
     for j, name in enumerate(names):
         if not np.isfinite(sig[j]) or sig[j] > DATA_SHARE * prior_sig[j]:
             what = ("the range offset" if j == 0 else
