@@ -12,6 +12,7 @@ from ..turntable import Axis
 from .data import JointData, joint_data
 from .jitter import angle_jitter
 from .model import JointModel
+from .moments import irls_moments, moments_usable
 from .params import (
     CORNER_FLOOR_PX,
     F_SCALE,
@@ -41,7 +42,7 @@ def _start_bases(result_or_models, data: JointData, psi_ref: float) -> list[_Bas
 
 def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
                    loss: str = "soft_l1", psi_ref_deg: float | None = None,
-                   f_scale: float = F_SCALE, solver: str = "lm",
+                   f_scale: float = F_SCALE, solver: str = "moments",
                    correlated: bool = True,
                    corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True,
                    ranging: bool = True, ranging_prior: RangingPrior | None = None) -> JointModel:
@@ -78,6 +79,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         return np.concatenate([x[:N_RIG], np.zeros(2 * N_BOARD), x[N_RIG:]])
 
     def solve(prob: _Problem, x: np.ndarray):
+        if solver == "moments" and moments_usable(prob, use_corners):
+            return irls_moments(prob, x, loss, f_scale)
         if solver == "scipy":
             return least_squares(prob.normalised, x, jac=prob.jacobian, args=(use_corners,),
                                  loss=loss, f_scale=f_scale, x_scale="jac", method="trf",

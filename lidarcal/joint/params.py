@@ -66,8 +66,12 @@ def _boards(x: np.ndarray, base: _Base):
 
 
 def _poses(k, a, R_ref, T_ref, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid model at angles ``t`` (rad from psi_ref): R (N, 3, 3), T (N, 3)."""
-    Q = Rotation.from_rotvec(np.outer(t, k)).as_matrix()
+    """Rigid model at angles ``t`` (rad from psi_ref): R (N, 3, 3), T (N, 3).
+
+    ``Q = cos t I + sin t [k]x + (1 - cos t) k k^T`` (Rodrigues, ``|k| = 1``)."""
+    c, s = np.cos(t)[:, None, None], np.sin(t)[:, None, None]
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    Q = c * np.eye(3) + s * kx + (1 - c) * np.outer(k, k)
     return Q @ R_ref, a + (Q @ (T_ref - a)[:, None])[:, :, 0]
 
 

@@ -269,11 +269,13 @@ class _Problem:
         zL = R[d.stripe_pos, :, 2]
         line = unit(np.cross(n, zL))  # stripe direction on the board
         u = unit(np.cross(n, line))  # in the board, perpendicular to the stripe
-        h = 0.05  # mm
-        from ..camera import project_points
-
-        pu = (project_points(d.camera, P + h * u) - project_points(d.camera, P - h * u)) / (2 * h)
-        pl = unit(project_points(d.camera, P + h * line) - project_points(d.camera, P - h * line))
+        # d pixel / d point through the lens model: cv2.projectPoints' Jacobian wrt the
+        # translation (columns 3-5) is exactly that with a zero rotation
+        _, Jt = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                  np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float))
+        Jt = Jt[:, 3:6].reshape(-1, 2, 3)
+        pu = np.einsum("mij,mj->mi", Jt, u)
+        pl = unit(np.einsum("mij,mj->mi", Jt, line))
         perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
         du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
         self.scale_px = perp / np.maximum(du, 1e-9)
