@@ -76,6 +76,8 @@ class _MomentProblem:
         self.hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
         self.n_groups = prob.scan.n_groups
+        self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
+        self.cuts_p = np.searchsorted(self.gp, np.arange(self.n_groups + 1))
 
     def coefficients(self, x: np.ndarray, derivatives: bool = True
                      ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
@@ -134,23 +136,13 @@ class _MomentProblem:
         """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4)."""
         Qs = np.zeros((self.n_groups, 7, 7))
         Qp = np.zeros((self.n_groups, 4, 4))
-        for Q, h, W, gid in ((Qs, self.hs, Ws, self.gs), (Qp, self.hp, Wp, self.gp)):
-            if len(h) == 0:
-                continue
+        for Q, h, W, cuts in ((Qs, self.hs, Ws, self.cuts_s), (Qp, self.hp, Wp, self.cuts_p)):
             hw = h * W[:, None]
-            outer = np.einsum("mi,mj->mij", hw, h).reshape(len(h), -1)
-            Q.reshape(self.n_groups, -1)[:] = _group_sum(outer, gid, self.n_groups)
+            for g in range(self.n_groups):  # rows sorted by group: one small product each
+                a, b = cuts[g], cuts[g + 1]
+                if b > a:
+                    Q[g] = hw[a:b].T @ h[a:b]
         return Qs, Qp
-
-
-def _group_sum(A: np.ndarray, gid: np.ndarray, n_groups: int) -> np.ndarray:
-    """Column sums of ``A`` per group (rows sorted by ``gid``)."""
-    out = np.zeros((n_groups, A.shape[1]))
-    starts = np.searchsorted(gid, np.arange(n_groups))
-    nonempty = np.bincount(gid, minlength=n_groups) > 0
-    if nonempty.any():
-        out[nonempty] = np.add.reduceat(A, starts[nonempty], axis=0)
-    return out
 
 
 def moments_usable(prob: _Problem, use_corners: bool) -> bool:
