@@ -264,6 +264,9 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    from .ranging import ranging_prior
+
+    ranging_prior(ds.raw, ds.dataset_json)  # lidar.range_offset_* checked before any work
     skip = set(skip)
     todo = [p for p in ds.positions if p.index not in skip]
     if images is None:

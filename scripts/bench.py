@@ -65,7 +65,7 @@ def main() -> None:
         t_read.append(read_only(a.dataset))
         t_cal.append(calibrate(a.dataset))
         t_rigid.append(calibrate(a.dataset, "--method", "rigid"))
-    n = sum(1 for _ in open(a.dataset / "positions.csv")) - 1
+    n = len((a.dataset / "positions.csv").read_text().splitlines()) - 1
     r, c, g = min(t_read), min(t_cal), min(t_rigid)
     print(f"dataset: {a.dataset} ({n} positions); {os.cpu_count()} cores, load average "
           f"{load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end")

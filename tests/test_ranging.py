@@ -187,3 +187,41 @@ def test_cli_writes_ranging_and_points_apply_it(small_dataset, tmp_path):
     T = cal.pose(0.0).T
     np.testing.assert_allclose(np.linalg.norm(a - T), 1490.0, atol=1e-6)
     np.testing.assert_allclose(np.linalg.norm(b - T), 1500.0, atol=1e-6)
+
+
+def test_measure_corrects_ranges_before_eq28():
+    """measure's points (eq. 28) subtract the calibration's range offset first."""
+    import pandas as pd
+
+    from lidarcal.geometry import Pose
+    from lidarcal.measure import sweep_points
+
+    class Fn:  # a pose function carrying a ranging model, as a loaded joint calibration does
+        def __init__(self, offset_mm: float):
+            self.ranging = RangingModel(offset_mm=offset_mm)
+
+        def pose(self, psi_deg: float) -> Pose:
+            return Pose(np.eye(3), np.array([10.0, 20.0, 30.0]))
+
+    sweep = pd.DataFrame({"psi_deg": [0.0, 0.0], "angle_deg": [0.0, 30.0], "range_mm": [1500.0, 0.0]})
+    biased = sweep.assign(range_mm=[1507.0, 0.0])
+    a = sweep_points(sweep, Fn(0.0))
+    b = sweep_points(biased, Fn(7.0))
+    np.testing.assert_allclose(b[0], a[0])
+    np.testing.assert_allclose(b[1], a[1])  # no return stays no return (range 0)
+
+
+def test_cli_bad_range_offset_prior_exits_2(dataset_copy, tmp_path):
+    """A non-positive lidar.range_offset_sigma_mm: one line naming dataset.json, exit 2, no output."""
+    path = dataset_copy / "dataset.json"
+    meta = json.loads(path.read_text())
+    meta["lidar"]["range_offset_sigma_mm"] = -3
+    path.write_text(json.dumps(meta))
+    out = tmp_path / "cal"
+    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out",
+                        str(out), "--no-progress"], capture_output=True, text=True, check=False)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and "dataset.json" in lines[0]
+    assert "range_offset_sigma_mm' must be > 0" in lines[0]
+    assert not (out / "calibration.json").exists()
