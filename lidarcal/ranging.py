@@ -42,6 +42,9 @@ from .dataset import BoardSpec, DatasetError
 DEFAULT_PRIOR_SIGMA_MM = 100.0  # wide: larger than any datasheet's systematic error
 #: a term is "determined by the data" when its posterior sigma is below this share of its prior's
 DATA_SHARE = 0.5
+#: a term is applied when the data move it this many sigmas from the prior's mean; else it is
+#: held there (the pose as with exact ranges) and its sigma still enters every rig sigma
+RANGING_SIGNIFICANCE = 3.0
 #: returns this close to a square edge (mm) are counted partly dark (footprint, pose error)
 EDGE_BLEND_MM = 1.0
 MODEL_TEXT = "rho_true = rho_measured - offset_mm - dark_extra_mm * [return from a black board square]"
@@ -95,6 +98,7 @@ class RangingModel:
     prior: RangingPrior | None = None
     estimated: tuple[str, ...] = ()  # the terms the joint fit estimated
     determined: tuple[str, ...] = ()  # ... and of those the ones the data determine
+    held: tuple[str, ...] = ()  # not significant: held at the prior's mean (sigma still counted)
 
     def correct(self, range_mm: np.ndarray, dark: np.ndarray | None = None) -> np.ndarray:
         """True ranges from measured ones: ``rho - offset - dark_extra * dark``.
@@ -111,7 +115,8 @@ class RangingModel:
         out = {"offset_mm": float(self.offset_mm), "offset_sigma_mm": float(self.offset_sigma_mm),
                "dark_extra_mm": float(self.dark_extra_mm),
                "dark_extra_sigma_mm": float(self.dark_extra_sigma_mm), "model": self.model,
-               "estimated": list(self.estimated), "determined_by_data": list(self.determined)}
+               "estimated": list(self.estimated), "determined_by_data": list(self.determined),
+               "held_at_prior": list(self.held)}
         if self.prior is not None:
             out["prior"] = {"offset_mm": self.prior.offset_mm,
                             "offset_sigma_mm": self.prior.offset_sigma_mm,
@@ -127,7 +132,8 @@ class RangingModel:
                             float(d.get("dark_extra_mm", 0.0)),
                             float(d.get("dark_extra_sigma_mm", 0.0)), str(d.get("model", MODEL_TEXT)),
                             estimated=tuple(d.get("estimated", ())),
-                            determined=tuple(d.get("determined_by_data", ())))
+                            determined=tuple(d.get("determined_by_data", ())),
+                            held=tuple(d.get("held_at_prior", ())))
 
 
 def ranging_of(model) -> RangingModel:

@@ -14,12 +14,16 @@ axis direction ``k`` (2: a step in the plane perpendicular to the start
 direction, then normalised), axis point ``a`` (2: a step perpendicular to
 ``k``; the position along the axis is a gauge), the LiDAR pose at the
 reference angle (rotation vector 3 and centre 3); with ``fit_planes`` the two
-board poses (3 + 3 each).
+board poses (3 + 3 each); with ``ranging`` (default) the LiDAR's range offset
+and, when the returns from black squares can be told, their extra range
+(:mod:`lidarcal.ranging`; a prior from dataset.json or a wide default enters as
+one more observation each; the rig covariance is marginal over them).
 
 Residuals:
 
-* scan: every kept board return ``p`` of every scan (eq. 6, LiDAR frame) against
-  its board's plane: ``n_b . (R(psi) p + T(psi)) - d_b`` (mm, eq. 3 and eq. 28);
+* scan: every kept board return ``p`` of every scan (eq. 6, LiDAR frame; its range
+  corrected by the ranging model) against its board's plane:
+  ``n_b . (R(psi) p + T(psi)) - d_b`` (mm, eq. 3 and eq. 28);
 * stripe: every stripe-centre pixel, back-projected onto its board's plane
   (eq. 5), against the laser plane the model predicts at that psi (the LiDAR's
   z = 0 plane): the distance in mm times the local image scale (pixels of
@@ -64,10 +68,17 @@ reprojection residuals understate the plane error; the planes' information
 assumes at least ``CORNER_FLOOR_PX`` per corner coordinate. The camera
 intrinsics are taken as exact.
 
-Solver: :func:`irls_lm`, Levenberg-Marquardt on the (n, n) normal equations
-with IRLS weights (same optimum as ``scipy.optimize.least_squares`` with the
-same loss, available as ``solver="scipy"``; its dense SVD of the ~1e5 x 10
-Jacobian each iteration is slow on busy machines).
+Solver (planes held, the default): :func:`lidarcal.joint.moments.irls_moments`.
+Every residual is linear in a short homogeneous vector of its observation with
+coefficients that depend on the parameters per (position, board) only, and the
+correlated-noise whitening is linear too: with the robust weights held, a
+group's weighted sum of squares is exactly ``c^T Q c`` with its second-moment
+matrix ``Q``, so an iteration costs O(positions); the weights are updated
+between inner solves (IRLS). ``solver="lm"``: :func:`irls_lm`, the same
+optimum row by row (Levenberg-Marquardt on the (n, n) normal equations,
+weights updated every iteration; also used with ``fit_planes``);
+``solver="scipy"``: ``scipy.optimize.least_squares`` (dense SVD of the ~1e5 x n
+Jacobian each iteration, slow).
 
 Convention: as :mod:`lidarcal.turntable` (increasing psi turns right-handedly
 about ``axis.direction``); mm and degrees at the edges, radians inside.

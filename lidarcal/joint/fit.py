@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.optimize import least_squares
 
 from ..geometry import Plane
-from ..ranging import DATA_SHARE, RangingModel, RangingPrior
+from ..ranging import DATA_SHARE, RANGING_SIGNIFICANCE, RangingModel, RangingPrior
 from ..ranging import ranging_prior as _ranging_prior
 from ..turntable import Axis
 from .data import JointData, joint_data
@@ -117,6 +119,43 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     for _ in range(2):
         sol = refine(prob, x)
         x = sol.x
+
+    def rebased(prob: _Problem, x: np.ndarray, t: np.ndarray) -> _Problem:
+        """The problem re-based at ``x`` (so x = 0 there), with the given prior: its
+        covariance is about the solution."""
+        xr, rv = prob.split(_full(x))
+        k, a, R_ref, T_ref = _rig(xr, prob.base)
+        bR, bT = _boards(xr, prob.base)
+        out = _Problem(data, _Base.make(k, a, R_ref, T_ref, bR, bT, rv), psi_ref, n_rng,
+                       prior_arrays)
+        out.t = t
+        out.scale_px, out.scan, out.stripe, out.dark = prob.scale_px, prob.scan, prob.stripe, prob.dark
+        out.sigma_corner = prob.sigma_corner
+        out.corner_floor_px = float(corner_floor_px)
+        return out
+
+    # ranging terms the data do not move significantly from the prior are held at the
+    # prior's mean (the pose stays as with exact ranges); their uncertainty stays in every
+    # sigma: the covariance below is the one with the terms free (marginal = conditional +
+    # the held terms' posterior variance propagated)
+    held: tuple[int, ...] = ()
+    if n_rng:
+        p = rebased(prob, x, prob.t)
+        c_all, _, _ = _covariance(p, fit_planes, loss, f_scale)
+        sig = _ranging_sigmas(c_all, p.sandwich)
+        _, rv = prob.split(_full(x))
+        z = np.abs(rv[:n_rng] - prior_arrays[0][:n_rng]) / np.maximum(sig, 1e-300)
+        held = tuple(int(j) for j in np.flatnonzero(z <= RANGING_SIGNIFICANCE))
+        if held:
+            rng0 = prob.base.ranging.copy()
+            x = x.copy()
+            for j in held:
+                rng0[j] = prior_arrays[0][j]
+                x[len(x) - n_rng + j] = 0.0
+            prob.base = replace(prob.base, ranging=rng0)
+            prob.frozen = held
+            sol = solve(prob, x)  # same noise model and kept residuals, terms held
+            x = sol.x
     # encoder jitter (beyond the paper): per-position angle corrections, then the rig again
     t_reported = prob.t.copy()
     jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated) if jitter else None
@@ -127,17 +166,11 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated)
     applied = jit is not None and jit["lr"] > JITTER_LR
     t_final = t_reported + np.radians(jit["correction_deg"]) if applied else t_reported
-    # re-base at the solution so the covariance is about it (x = 0)
+    # re-base at the solution so the covariance is about it (x = 0); ranging terms free
     xr, rv = prob.split(_full(x))
-    k, a, R_ref, T_ref = _rig(xr, prob.base)
     bR, bT = _boards(xr, prob.base)
-    base = _Base.make(k, a, R_ref, T_ref, bR, bT, rv)
-    old = prob
-    prob = _Problem(data, base, psi_ref, n_rng, prior_arrays)
-    prob.t = t_final
-    prob.scale_px, prob.scan, prob.stripe, prob.dark = old.scale_px, old.scan, old.stripe, old.dark
-    prob.sigma_corner = old.sigma_corner
-    prob.corner_floor_px = float(corner_floor_px)
+    prob = rebased(prob, x, t_final)
+    base = prob.base
     cov_all, null_all, s2 = _covariance(prob, fit_planes, loss, f_scale)
     cov, null = cov_all[:N_RIG, :N_RIG], null_all[:N_RIG]
     axis = Axis.from_point_direction(base.a, base.k)
@@ -157,9 +190,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     warn = joint_warnings(data, model, null)
     rmodel = None
     if n_rng:
-        rmodel, rwarn = _ranging_model(rv, cov_all[N_RIG:, N_RIG:],
-                                       (cov_all if prob.sandwich is None else prob.sandwich)[N_RIG:, N_RIG:], n_rng,
-                                       prior, prob.dark)
+        rmodel, rwarn = _ranging_model(rv, _ranging_sigmas(cov_all, prob.sandwich), n_rng,
+                                       prior, prob.dark, held)
         warn += rwarn
     info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
             "status": int(sol.status), "start": best, "fit_planes": fit_planes,
@@ -174,14 +206,20 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
                       jitter_deg, corrections, rmodel)
 
 
-def _ranging_model(rv: np.ndarray, cov: np.ndarray, robust_cov: np.ndarray, n_rng: int,
-                   prior: RangingPrior, dark: np.ndarray) -> tuple[RangingModel, list[str]]:
+def _ranging_sigmas(cov_all: np.ndarray, sandwich: np.ndarray | None) -> np.ndarray:
+    """1-sigma of the ranging terms: the larger of the model's and the cluster-robust one
+    (positions as clusters, :func:`lidarcal.joint.solver._cluster_covariance`)."""
+    v = np.clip(np.diag(cov_all)[N_RIG:], 0, None)
+    if sandwich is not None:
+        v = np.maximum(v, np.clip(np.diag(sandwich)[N_RIG:], 0, None))
+    return np.sqrt(v)
+
+
+def _ranging_model(rv: np.ndarray, sig: np.ndarray, n_rng: int, prior: RangingPrior,
+                   dark: np.ndarray, held: tuple[int, ...] = ()) -> tuple[RangingModel, list[str]]:
     """The fitted ranging terms with their 1-sigma, and a warning for each term the data do
     not determine (posterior sigma above ``DATA_SHARE`` of the prior's: the prior decides).
-
-    Each sigma is the larger of the model's and the cluster-robust one (positions as
-    clusters, :func:`lidarcal.joint.solver._cluster_covariance`)."""
-    sig = np.sqrt(np.maximum(np.clip(np.diag(cov), 0, None), np.clip(np.diag(robust_cov), 0, None)))
+    ``held``: terms held at the prior's mean (not significant)."""
     prior_sig = (prior.offset_sigma_mm, prior.dark_extra_sigma_mm)
     names = ("offset", "dark_extra")[:n_rng]
     determined, warn = [], []
@@ -206,7 +244,7 @@ def _ranging_model(rv: np.ndarray, cov: np.ndarray, robust_cov: np.ndarray, n_rn
             determined.append(name)
     rm = RangingModel(float(rv[0]), float(sig[0]), float(rv[1]) if n_rng > 1 else 0.0,
                       float(sig[1]) if n_rng > 1 else 0.0, prior=prior, estimated=names,
-                      determined=tuple(determined))
+                      determined=tuple(determined), held=tuple(names[j] for j in held))
     return rm, warn
 
 

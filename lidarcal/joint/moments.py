@@ -119,6 +119,8 @@ class _MomentProblem:
             Js[:, 2, N_RIG], Js[:, 3, N_RIG] = -a, -b
         if prob.n_ranging >= 2:
             Js[:, 4, N_RIG + 1], Js[:, 5, N_RIG + 1] = -a, -b
+        for j in prob.frozen:  # held ranging terms: no column
+            Js[:, :, N_RIG + j] = 0.0
         z = Rg[:, :, 2]
         dz = Gg[:, 6:9]
         cp = np.column_stack([z, -np.einsum("gi,gi->g", Tg, z)])
@@ -177,6 +179,8 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
         Jr[:, N_RIG:] = np.diag(1 / prob.prior_sigma[:prob.n_ranging])
+        for j in prob.frozen:
+            Jr[:, N_RIG + j] = 0.0
     for _ in range(max_outer):
         Ws = _irls_weights(rs / f_scale, loss)
         Wp = _irls_weights(rp / f_scale, loss)

@@ -51,6 +51,7 @@ class _Problem:
         self.sigma_corner = 1.0
         self.corner_floor_px = 0.0
         self.sandwich: np.ndarray | None = None  # cluster-robust covariance (solver._covariance)
+        self.frozen: tuple[int, ...] = ()  # ranging terms held at base.ranging (zero columns)
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rig + boards part of ``x``, ranging terms (2,) in mm)."""
@@ -222,6 +223,9 @@ class _Problem:
             Jr = np.zeros((self.n_ranging, n_par))
             Jr[:, n_main:] = np.diag(1 / self.prior_sigma[:self.n_ranging])
             blocks.append(Jr)
+        for j in self.frozen:  # held terms: no column (the step leaves them)
+            for blk in blocks:
+                blk[:, n_main + j] = 0.0
         if use_corners:
             m = len(self.corner_residuals(bR, bT))
             Jc = np.zeros((m, n_par))
