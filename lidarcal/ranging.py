@@ -234,6 +234,8 @@ def ranging_text(ranging: dict | RangingModel | None, fmt: str = "text") -> str:
                             ("dark-square extra", "dark_extra", rm.dark_extra_mm, rm.dark_extra_sigma_mm)):
         if key not in rm.estimated:
             how = "not estimated"
+        elif key in rm.held:
+            how = "held at the prior's mean (not significant; its sigma counted)"
         elif key in rm.determined:
             how = "from the data"
         else:
