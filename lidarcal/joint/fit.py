@@ -142,8 +142,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     if n_rng:
         p = rebased(prob, x, prob.t)
         c_all, _, _ = _covariance(p, fit_planes, loss, f_scale)
-        sig = _ranging_sigmas(c_all, p.sandwich)
         _, rv = prob.split(_full(x))
+        sig = _ranging_sigmas(c_all, p.sandwich, rv, prob.dark)
         z = np.abs(rv[:n_rng] - prior_arrays[0][:n_rng]) / np.maximum(sig, 1e-300)
         held = tuple(int(j) for j in np.flatnonzero(z <= RANGING_SIGNIFICANCE))
         if held:
@@ -190,7 +190,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     warn = joint_warnings(data, model, null)
     rmodel = None
     if n_rng:
-        rmodel, rwarn = _ranging_model(rv, _ranging_sigmas(cov_all, prob.sandwich), n_rng,
+        rmodel, rwarn = _ranging_model(rv, _ranging_sigmas(cov_all, prob.sandwich, rv, prob.dark), n_rng,
                                        prior, prob.dark, held)
         warn += rwarn
     info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
@@ -206,12 +206,19 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
                       jitter_deg, corrections, rmodel)
 
 
-def _ranging_sigmas(cov_all: np.ndarray, sandwich: np.ndarray | None) -> np.ndarray:
+def _ranging_sigmas(cov_all: np.ndarray, sandwich: np.ndarray | None, rv: np.ndarray,
+                    dark: np.ndarray) -> np.ndarray:
     """1-sigma of the ranging terms: the larger of the model's and the cluster-robust one
-    (positions as clusters, :func:`lidarcal.joint.solver._cluster_covariance`)."""
+    (positions as clusters, :func:`lidarcal.joint.solver._cluster_covariance`); the dark
+    extra adds, in quadrature, the error of the returns near a square edge (partly dark,
+    :data:`lidarcal.ranging.EDGE_BLEND_MM`): up to half the extra on that share of the
+    returns, uniform, ``0.5 |extra| share / sqrt(3)``."""
     v = np.clip(np.diag(cov_all)[N_RIG:], 0, None)
     if sandwich is not None:
         v = np.maximum(v, np.clip(np.diag(sandwich)[N_RIG:], 0, None))
+    if len(v) > 1 and len(dark):
+        share = float(np.mean((dark > 0) & (dark < 1)))
+        v[1] += (0.5 * abs(rv[1]) * share) ** 2 / 3.0
     return np.sqrt(v)
 
 
