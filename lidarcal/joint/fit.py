@@ -139,9 +139,11 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     # sigma: the covariance below is the one with the terms free (marginal = conditional +
     # the held terms' posterior variance propagated)
     held: tuple[int, ...] = ()
+    decided = None  # (problem, covariance) at the decision: the final ones if nothing moves
     if n_rng:
         p = rebased(prob, x, prob.t)
-        c_all, _, _ = _covariance(p, fit_planes, loss, f_scale)
+        decided = (p, _covariance(p, fit_planes, loss, f_scale))
+        c_all = decided[1][0]
         _, rv = prob.split(_full(x))
         sig = _ranging_sigmas(c_all, p.sandwich, rv, prob.dark)
         z = np.abs(rv[:n_rng] - prior_arrays[0][:n_rng]) / np.maximum(sig, 1e-300)
@@ -169,9 +171,12 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     # re-base at the solution so the covariance is about it (x = 0); ranging terms free
     xr, rv = prob.split(_full(x))
     bR, bT = _boards(xr, prob.base)
-    prob = rebased(prob, x, t_final)
+    if decided is not None and not held and not applied:
+        prob, (cov_all, null_all, s2) = decided  # same solution, angles and noise model
+    else:
+        prob = rebased(prob, x, t_final)
+        cov_all, null_all, s2 = _covariance(prob, fit_planes, loss, f_scale)
     base = prob.base
-    cov_all, null_all, s2 = _covariance(prob, fit_planes, loss, f_scale)
     cov, null = cov_all[:N_RIG, :N_RIG], null_all[:N_RIG]
     axis = Axis.from_point_direction(base.a, base.k)
     rs, rp, rc = prob.blocks(np.zeros(N_RIG + 2 * N_BOARD + n_rng))
