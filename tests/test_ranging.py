@@ -227,3 +227,20 @@ def test_cli_bad_range_offset_prior_exits_2(dataset_copy, tmp_path):
     assert len(lines) == 1 and "dataset.json" in lines[0]
     assert "range_offset_sigma_mm' must be > 0" in lines[0]
     assert not (out / "calibration.json").exists()
+
+
+def test_fragmented_scan_segments_are_named(sim):
+    """A V split that kept only fragments of the boards (as a staircase of ranges can make it)
+    is named in a warning; whole segments are not."""
+    d = _biased(sim, 0.0, 0.0, give_dark=False)
+    m, _, _ = _fit(sim, d)
+    assert not any("fragments" in w for w in m.warnings)
+    keep = np.zeros(len(d.scan_xy), bool)
+    for g in np.unique(d.scan_pos * 2 + d.scan_board):  # the middle fifth of every segment
+        idx = np.flatnonzero(d.scan_pos * 2 + d.scan_board == g)
+        keep[idx[2 * len(idx) // 5:3 * len(idx) // 5]] = True
+    cut = replace(d, scan_xy=d.scan_xy[keep], scan_pos=d.scan_pos[keep],
+                  scan_board=d.scan_board[keep])
+    m, _, _ = _fit(sim, cut)
+    assert any("fragments" in w and f"at {d.n_positions} of {d.n_positions}" in w
+               for w in m.warnings)

@@ -261,6 +261,9 @@ def _ranging_model(rv: np.ndarray, sig: np.ndarray, n_rng: int, prior: RangingPr
 
 
 
+MIN_COVERAGE = 0.7  # scan span / stripe span below this: fragments of a board
+
+
 def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None = None) -> list[str]:
     """Warnings for weak setups (few positions, short sweep, axis ~ scan-plane normal, ...)."""
     out = []
@@ -292,6 +295,36 @@ def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None =
     if null is not None and null.shape[1]:
         out.append(f"{null.shape[1]} combination(s) of the rig parameters are not determined by the "
                    "data (rank-deficient Jacobian); their sigmas are reported as inf")
+    cover = scan_coverage(data, model)
+    short = np.flatnonzero(np.nanmin(cover, axis=1) < MIN_COVERAGE)
+    if len(short) > 0.1 * n:
+        out.append(f"at {len(short)} of {n} positions (indices {data.indices[short].tolist()[:10]}) "
+                   f"the kept scan returns span less than {MIN_COVERAGE:.0%} of the board the laser "
+                   "stripe crosses (median "
+                   f"{float(np.nanmedian(cover[short].min(axis=1))):.0%}): the V split kept fragments "
+                   "of the boards (ranges in steps, e.g. dark squares read farther?); the fit, and "
+                   "its ranging terms, rest on those fragments")
+    return out
+
+
+def scan_coverage(data: JointData, model) -> np.ndarray:
+    """Per position and board (N, 2): the span of the kept scan returns along the board's
+    laser line over the span of its stripe centres (1: the scan covers what the camera sees
+    of the line; NaN: too few points). Returns in the camera frame by ``model.pose``."""
+    out = np.full((data.n_positions, 2), np.nan)
+    for i in range(data.n_positions):
+        p = model.pose(float(data.psi_deg[i]))
+        for b in range(2):
+            ray = data.stripe_rays[(data.stripe_pos == i) & (data.stripe_board == b)]
+            xy = data.scan_xy[(data.scan_pos == i) & (data.scan_board == b)]
+            if len(ray) < 5 or len(xy) < 2:
+                continue
+            n = data.board_R[b][:, 2]
+            P = ray * (float(n @ data.board_T[b]) / (ray @ n))[:, None]
+            X = xy[:, :1] * p.R[:, 0] + xy[:, 1:] * p.R[:, 1] + p.T
+            line = np.cross(n, p.R[:, 2])
+            line /= max(np.linalg.norm(line), 1e-12)
+            out[i, b] = np.ptp(X @ line) / max(np.ptp(P @ line), 1e-9)
     return out
 
 
