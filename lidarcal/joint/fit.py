@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..geometry import Plane
 from ..ranging import DATA_SHARE, RANGING_SIGNIFICANCE, RangingModel, RangingPrior
@@ -80,10 +79,12 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             return x
         return np.concatenate([x[:N_RIG], np.zeros(2 * N_BOARD), x[N_RIG:]])
 
-    def solve(prob: _Problem, x: np.ndarray):
+    def solve(prob: _Problem, x: np.ndarray, tol: float = 1e-12):
         if solver == "moments" and moments_usable(prob, use_corners):
-            return irls_moments(prob, x, loss, f_scale)
+            return irls_moments(prob, x, loss, f_scale, tol=tol)
         if solver == "scipy":
+            from scipy.optimize import least_squares
+
             return least_squares(prob.normalised, x, jac=prob.jacobian, args=(use_corners,),
                                  loss=loss, f_scale=f_scale, x_scale="jac", method="trf",
                                  xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=100)
@@ -96,7 +97,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         prob.classify(_full(x0))
         prob.set_stripe_scale(_full(x0))
         prob.estimate_noise(x0, correlated=False)
-        sols.append((prob, solve(prob, x0)))
+        sols.append((prob, solve(prob, x0, 1e-8)))  # to pick a start; the passes below finish
     # costs are comparable only with the same noise model: rescore with the first start's
     scores = []
     for prob, sol in sols:
@@ -171,8 +172,13 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     # re-base at the solution so the covariance is about it (x = 0); ranging terms free
     xr, rv = prob.split(_full(x))
     bR, bT = _boards(xr, prob.base)
-    if decided is not None and not held and not applied:
-        prob, (cov_all, null_all, s2) = decided  # same solution, angles and noise model
+    if decided is not None and not applied:
+        # same angles and noise model; held terms moved the rig by less than its sigma, so
+        # the Jacobian there (the covariance, about the local steps) is the same
+        cov_all, null_all, s2 = decided[1]
+        sandwich = decided[0].sandwich
+        prob = rebased(prob, x, t_final)
+        prob.sandwich = sandwich
     else:
         prob = rebased(prob, x, t_final)
         cov_all, null_all, s2 = _covariance(prob, fit_planes, loss, f_scale)
