@@ -301,13 +301,12 @@ def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None =
     if null is not None and null.shape[1]:
         out.append(f"{null.shape[1]} combination(s) of the rig parameters are not determined by the "
                    "data (rank-deficient Jacobian); their sigmas are reported as inf")
-    cover = scan_coverage(data, model)
-    short = np.flatnonzero(np.nanmin(cover, axis=1) < MIN_COVERAGE)
+    cover = np.min(np.where(np.isfinite(c := scan_coverage(data, model)), c, np.inf), axis=1)
+    short = np.flatnonzero(cover < MIN_COVERAGE)  # positions without stripes: inf, never short
     if len(short) > 0.1 * n:
         out.append(f"at {len(short)} of {n} positions (indices {data.indices[short].tolist()[:10]}) "
                    f"the kept scan returns span less than {MIN_COVERAGE:.0%} of the board the laser "
-                   "stripe crosses (median "
-                   f"{float(np.nanmedian(cover[short].min(axis=1))):.0%}): the V split kept fragments "
+                   f"stripe crosses (median {float(np.median(cover[short])):.0%}): the V split kept fragments "
                    "of the boards (ranges in steps, e.g. dark squares read farther?); the fit, and "
                    "its ranging terms, rest on those fragments")
     return out
