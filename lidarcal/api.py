@@ -29,15 +29,30 @@ class Calibration:
         """LiDAR pose in the camera frame at turntable angle ``psi_deg`` (eqs. 26-27)."""
         return self.model.pose(float(psi_deg))
 
+    @property
+    def ranging(self):
+        """The LiDAR's ranging model (:class:`lidarcal.ranging.RangingModel`) fitted with this
+        pose function: calibration.json ``ranging`` for the joint fit; zero terms for a pose
+        function fitted without one (the paper's chain, the rigid fit) or an older file."""
+        from .ranging import RangingModel
+
+        own = getattr(self.model, "ranging", None)
+        if isinstance(own, RangingModel):
+            return own
+        if type(self.model).__name__ == "JointModel":
+            return RangingModel.from_dict(self.data.get("ranging"))
+        return RangingModel()
+
     def points(self, psi_deg: float | np.ndarray, angle_deg: np.ndarray,
                range_mm: np.ndarray) -> np.ndarray:
         """Camera-frame points of LiDAR returns, eq. (28):
-        ``X_c = R(psi) [rho cos theta, rho sin theta, 0]^T + T(psi)``.
+        ``X_c = R(psi) [rho cos theta, rho sin theta, 0]^T + T(psi)``, with ``rho`` the range
+        corrected by the ranging model (``rho - offset_mm``, :mod:`lidarcal.ranging`).
 
         ``psi_deg`` is one angle or one per return; NaN ranges (no return) give NaN rows.
         """
         ang = np.radians(np.asarray(angle_deg, dtype=float))
-        rng = np.asarray(range_mm, dtype=float)
+        rng = self.ranging.correct(np.asarray(range_mm, dtype=float))
         psi = np.broadcast_to(np.asarray(psi_deg, dtype=float), rng.shape)
         local = np.column_stack([rng * np.cos(ang), rng * np.sin(ang), np.zeros_like(rng)])
         out = np.empty_like(local)

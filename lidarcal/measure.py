@@ -71,6 +71,7 @@ from scipy.sparse import csgraph
 
 from .dataset import LidarSpec
 from .geometry import Plane, Pose, fit_circle_2d, fit_plane, plane_basis
+from .ranging import ranging_of
 
 #: inlier band of the disc plane, in robust range-noise sigmas
 K_SIGMA = 4.0
@@ -216,6 +217,7 @@ def sweep_points(sweep: pd.DataFrame, model: PoseFunction) -> np.ndarray:
     distinct psi; the rest is vectorised.
     """
     psi, ang, rng = _columns(sweep)
+    rng = ranging_of(model).correct(rng)  # range offset (lidarcal.ranging) before eq. (28)
     upsi, inv = np.unique(psi, return_inverse=True)
     R, T = _poses(model, upsi)
     th = np.radians(ang)
@@ -232,6 +234,7 @@ def sweep_grid(sweep: pd.DataFrame, model: PoseFunction,
     LiDAR's ``[range_min_mm, range_max_mm]`` count as no return.
     """
     psi, ang, rng = _columns(sweep)
+    rng = ranging_of(model).correct(rng)  # range offset (lidarcal.ranging) before eq. (28)
     if len(psi) == 0:
         raise ValueError("Empty sweep: no rows")
     rng = np.where(rng > 0, rng, np.nan)

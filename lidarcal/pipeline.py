@@ -272,6 +272,9 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    from .ranging import ranging_prior
+
+    ranging_prior(ds.raw, ds.dataset_json)  # lidar.range_offset_* checked before any work
     skip = set(skip)
     todo = [p for p in ds.positions if p.index not in skip]
     own = images is None
@@ -438,6 +441,8 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
             out[f"poses_{name}"] = _pose_rows(res.fitted(m), psi, m)
     if res.joint_model is not None:
         out["sigma"] = sigma_block(res.joint_model, res.positions)
+    if res.method == "joint" and getattr(res.joint_model, "ranging", None) is not None:
+        out["ranging"] = res.joint_model.ranging.to_dict()  # lidarcal.ranging
     out.update({
         "boards": [{**b.plane.to_dict(), "reprojection_rms_px": float(b.reprojection_rms_px[0]),
                     "pnp": {**b.plane_pnp.to_dict(),

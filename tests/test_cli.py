@@ -301,7 +301,8 @@ def test_methods_fill_poses_and_keep_the_others(small_dataset, tmp_path, capsys)
     err = pose_errors({p["index"]: Pose.from_dict(p) for p in cal["poses"]}, truth)
     for row, e in zip(sig["poses"], err.itertuples()):
         assert row["index"] == e.index
-        assert 0 < row["centre_mm"] < 1.0 and 0 < row["z_axis_deg"] < 0.05
+        # with 4 positions the range offset's uncertainty (ranging model) is ~1 mm of it
+        assert 0 < row["centre_mm"] < 2.0 and 0 < row["z_axis_deg"] < 0.05
         assert e.centre_mm <= 4 * row["centre_mm"]  # the error bars mean something
     assert run(["calibrate", str(small_dataset), "--out", str(tmp_path / "r"), "--method", "rigid"],
                capsys)[0] == 0

@@ -195,6 +195,21 @@ def test_irls_lm_matches_scipy(noisy_rigs):
         assert e["centre_mm"] < 1e-3 and e["z_axis_deg"] < 1e-5 and e["x_axis_deg"] < 1e-4
 
 
+@pytest.mark.parametrize("i", [0, 1])
+def test_moment_solver_matches_irls_lm(noisy_rigs, i):
+    """The per-segment moment form (default) reaches the optimum of the row-by-row IRLS-LM:
+    same poses, same ranging terms, same robust cost (to the solvers' tolerance)."""
+    res = noisy_rigs[i].result
+    d = joint_data(res, "pnp")
+    a = fit_joint_data(d, [res.rigid_model, res.paper_model], solver="lm")
+    b = fit_joint_data(d, [res.rigid_model, res.paper_model])
+    for p, q in zip(a.pose(res.psi_deg), b.pose(res.psi_deg)):
+        e = pose_error(p, q)
+        assert e["centre_mm"] < 1e-3 and e["z_axis_deg"] < 1e-5 and e["x_axis_deg"] < 1e-4
+    assert abs(a.ranging.offset_mm - b.ranging.offset_mm) < 1e-3
+    assert b.info["cost"] == pytest.approx(a.info["cost"], rel=1e-6)
+
+
 def test_irls_lm_robust_line():
     """A straight line with 10 % gross outliers: soft_l1 recovers it, linear does not."""
     rng = np.random.default_rng(4)

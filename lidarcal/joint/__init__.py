@@ -1,0 +1,108 @@
+"""Joint fit of the whole rig to every stripe pixel and every scan point (beyond the paper).
+
+The paper solves each turntable position alone (section 1) and then fits
+functions of psi to those samples (section 2): every step throws information
+away. Here the rigid turntable model of :class:`lidarcal.turntable.RigidModel`,
+``pose(psi) = Rot(axis, psi - psi_ref) o pose_ref``, is fitted directly to the
+raw observations of all positions at once by robust least squares
+(maximum likelihood under the noise model below), started from the rigid
+model and the paper's chain (the lower robust cost wins); the covariance of
+the result comes from the Jacobian at the solution.
+
+Unknowns (minimal parametrisation, 10 + optionally 12):
+axis direction ``k`` (2: a step in the plane perpendicular to the start
+direction, then normalised), axis point ``a`` (2: a step perpendicular to
+``k``; the position along the axis is a gauge), the LiDAR pose at the
+reference angle (rotation vector 3 and centre 3); with ``fit_planes`` the two
+board poses (3 + 3 each); with ``ranging`` (default) the LiDAR's range offset
+and, when the returns from black squares can be told, their extra range
+(:mod:`lidarcal.ranging`; a prior from dataset.json or a wide default enters as
+one more observation each; the rig covariance is marginal over them).
+
+Residuals:
+
+* scan: every kept board return ``p`` of every scan (eq. 6, LiDAR frame; its range
+  corrected by the ranging model) against its board's plane:
+  ``n_b . (R(psi) p + T(psi)) - d_b`` (mm, eq. 3 and eq. 28);
+* stripe: every stripe-centre pixel, back-projected onto its board's plane
+  (eq. 5), against the laser plane the model predicts at that psi (the LiDAR's
+  z = 0 plane): the distance in mm times the local image scale (pixels of
+  stripe displacement, perpendicular to the imaged stripe, per mm of laser-
+  plane offset, through the lens model), i.e. the pixel distance from the
+  centre to the predicted stripe curve;
+* corners (only with ``fit_planes``): reprojection of the chessboard corners
+  of both boards through the lens model (pixels).
+
+Noise model (every scale estimated from the data, never a constant): per board,
+white noise (1.4826 x median absolute residual) plus, per scan segment and
+per stripe, a random offset and a random tilt (:class:`_Groups`, generalised
+least squares; entered only when significant). Stripe centres from real
+images carry such correlated errors (measured on rendered data: lag-1
+autocorrelation ~0.4, per-stripe mean errors 3-6x the white prediction);
+without them the covariance is far too optimistic. After a first robust fit
+(``loss``, residuals in sigmas, scale ``F_SCALE``) the noise is re-estimated
+and residuals beyond ``REJECT_SIGMAS`` are dropped (a bounded loss still
+pulls with constant force per outlier), twice.
+
+Encoder jitter (:func:`angle_jitter`): a turntable whose encoder reports each
+angle with a random error turns all of a position's observations together. With
+the rig held, each position's own angle step is estimated from its residuals;
+the jitter variance maximises the steps' marginal likelihood (random effects);
+when the data show a jitter (likelihood ratio above ``JITTER_LR``) every
+position's angle gets its posterior correction, the noise is re-estimated and
+the rig refitted. ``poses`` are then the function at the corrected angles, and
+their sigmas include each angle's remaining uncertainty. Without jitter nothing
+changes.
+
+The segment <-> board assignment of each position is the one the single-shot
+solution chose (``pose.info["pairs"]``: camera board ``k`` <-> scan segment
+``pairs[k]``).
+
+Covariance: ``s^2 (J^T W J)^-1`` with ``W`` the robust loss's IRLS weights and
+``s^2 >= 1`` the weighted residual variance. With ``fit_planes=False`` the
+board planes are held (default: the ``cv2.solvePnP`` poses, the corners' ML
+estimate); their uncertainty is propagated into the rig parameters as a
+"consider" covariance, ``A P A^T`` with ``A = (J_x^T J_x)^-1 J_x^T J_b``. Corner
+errors of chessboard detectors are correlated over the board, so the
+reprojection residuals understate the plane error; the planes' information
+assumes at least ``CORNER_FLOOR_PX`` per corner coordinate. The camera
+intrinsics are taken as exact.
+
+Solver (planes held, the default): :func:`lidarcal.joint.moments.irls_moments`.
+Every residual is linear in a short homogeneous vector of its observation with
+coefficients that depend on the parameters per (position, board) only, and the
+correlated-noise whitening is linear too: with the robust weights held, a
+group's weighted sum of squares is exactly ``c^T Q c`` with its second-moment
+matrix ``Q``, so an iteration costs O(positions); the weights are updated
+between inner solves (IRLS). ``solver="lm"``: :func:`irls_lm`, the same
+optimum row by row (Levenberg-Marquardt on the (n, n) normal equations,
+weights updated every iteration; also used with ``fit_planes``);
+``solver="scipy"``: ``scipy.optimize.least_squares`` (dense SVD of the ~1e5 x n
+Jacobian each iteration, slow).
+
+Convention: as :mod:`lidarcal.turntable` (increasing psi turns right-handedly
+about ``axis.direction``); mm and degrees at the edges, radians inside.
+"""
+
+from .data import JointData, build_joint_data, joint_data
+from .fit import fit_joint, fit_joint_data, joint_warnings
+from .jitter import angle_jitter
+from .model import JointModel
+from .params import (
+    CLIP_SIGMAS,
+    CORNER_FLOOR_PX,
+    F_SCALE,
+    JITTER_LR,
+    MAD_TO_SIGMA,
+    MIN_POINTS_PER_BOARD,
+    N_BOARD,
+    N_RIG,
+    REJECT_SIGMAS,
+    SIGNIFICANCE,
+)
+from .solver import LMResult, irls_lm
+
+__all__ = ["CLIP_SIGMAS", "CORNER_FLOOR_PX", "F_SCALE", "JITTER_LR", "MAD_TO_SIGMA",
+           "MIN_POINTS_PER_BOARD", "N_BOARD", "N_RIG", "REJECT_SIGMAS", "SIGNIFICANCE", "JointData",
+           "JointModel", "LMResult", "angle_jitter", "build_joint_data", "fit_joint",
+           "fit_joint_data", "irls_lm", "joint_data", "joint_warnings"]

@@ -1,0 +1,154 @@
+"""Observations of the joint fit: :class:`JointData` and its builders."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..dataset import BoardSpec, CameraModel
+from ..geometry import Pose
+
+
+@dataclass(frozen=True, eq=False)
+class JointData:
+    """Every observation the joint fit uses, flattened over positions and boards.
+
+    ``scan_xy`` (M, 2): kept board returns in the LiDAR plane (eq. 6) with their
+    position ``scan_pos`` (M,) (index into ``psi_deg``) and board ``scan_board`` (M,).
+    ``stripe_px`` (S, 2): stripe-centre pixels (distorted) with ``stripe_rays``
+    (S, 3) = undistorted rays ``(x, y, 1)``, ``stripe_pos``, ``stripe_board``.
+    ``board_R``, ``board_T`` (2, 3, 3), (2, 3): board poses (eq. 1) from the
+    homography; ``corners_px`` the detected corners per board and
+    ``object_points`` (C, 3) the board coordinates (None: no corner residuals).
+    ``samples``: the single-shot poses (section 1), for the start and warnings.
+    Ranging (:mod:`lidarcal.ranging`): ``board_spec`` and ``black_parity`` (per
+    board, :func:`lidarcal.ranging.black_parity`) let the fit tell which returns
+    hit a black square; ``scan_dark`` (M,) gives that directly instead (0..1, held).
+    """
+
+    camera: CameraModel
+    psi_deg: np.ndarray
+    indices: np.ndarray
+    scan_xy: np.ndarray
+    scan_pos: np.ndarray
+    scan_board: np.ndarray
+    stripe_px: np.ndarray
+    stripe_rays: np.ndarray
+    stripe_pos: np.ndarray
+    stripe_board: np.ndarray
+    board_R: np.ndarray
+    board_T: np.ndarray
+    corners_px: tuple[np.ndarray, np.ndarray] | None
+    object_points: np.ndarray | None
+    samples: list[Pose] = field(default_factory=list)
+    board_spec: BoardSpec | None = None
+    black_parity: tuple[int | None, int | None] | None = None
+    scan_dark: np.ndarray | None = None
+
+    @property
+    def n_positions(self) -> int:
+        return len(self.psi_deg)
+
+    def without_stripes(self) -> JointData:
+        """The same data with no stripe observations (the scan-only fit)."""
+        e = np.zeros(0, int)
+        return replace(self, stripe_px=np.zeros((0, 2)), stripe_rays=np.zeros((0, 3)),
+                       stripe_pos=e, stripe_board=e)
+
+    @property
+    def can_see_dark(self) -> bool:
+        """Whether the returns from black squares can be told (given, or board + colours known)."""
+        if self.scan_dark is not None:
+            return bool(np.any(self.scan_dark > 0) and np.any(self.scan_dark < 1))
+        return (self.board_spec is not None and self.black_parity is not None
+                and all(p is not None for p in self.black_parity))
+
+
+def _stripe_rays(camera: CameraModel, px: np.ndarray) -> np.ndarray:
+    from ..camera import pixel_rays
+
+    return pixel_rays(camera, px) if len(px) else np.zeros((0, 3))
+
+
+def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray, np.ndarray]],
+                     stripes: list[tuple[np.ndarray, np.ndarray]], board_R: np.ndarray,
+                     board_T: np.ndarray, corners_px=None, object_points=None,
+                     samples: list[Pose] | None = None, indices=None,
+                     board_spec: BoardSpec | None = None,
+                     black_parity: tuple[int | None, int | None] | None = None) -> JointData:
+    """:class:`JointData` from per-position observations, already assigned to boards.
+
+    Parameters
+    ----------
+    scans : list of (points_board0 (M0, 2), points_board1 (M1, 2)), one per position
+        LiDAR-plane points (eq. 6) on board 0 and board 1.
+    stripes : list of (centres_board0 (S0, 2), centres_board1 (S1, 2)), one per position
+        Stripe-centre pixels (distorted) on board 0 and board 1.
+    board_R, board_T : arrays (2, 3, 3), (2, 3)
+        Board poses (eq. 1); the planes are ``R[:, 2] . X = R[:, 2] . T``.
+    board_spec, black_parity : optional
+        The chessboard and which square parity is black on each board
+        (:func:`lidarcal.ranging.black_parity`): the fit then knows the returns
+        from black squares (ranging model).
+    """
+    psi = np.asarray(psi_deg, dtype=float).ravel()
+    if len(scans) != len(psi) or len(stripes) != len(psi):
+        raise ValueError(f"Expected one scan and one stripe pair per position ({len(psi)}), got "
+                         f"{len(scans)} and {len(stripes)}")
+    xy, sp, sb, cpx, cp, cb = [], [], [], [], [], []
+    for i, (sc, st) in enumerate(zip(scans, stripes)):
+        for b in range(2):
+            p = np.asarray(sc[b], dtype=float).reshape(-1, 2)
+            p = p[np.all(np.isfinite(p), axis=1)]
+            xy.append(p)
+            sp.append(np.full(len(p), i))
+            sb.append(np.full(len(p), b))
+            c = np.asarray(st[b], dtype=float).reshape(-1, 2)
+            cpx.append(c)
+            cp.append(np.full(len(c), i))
+            cb.append(np.full(len(c), b))
+    stripe_px = np.vstack(cpx)
+    rays = _stripe_rays(camera, stripe_px)
+    ok = np.all(np.isfinite(rays), axis=1)
+    cat = lambda v: np.concatenate(v).astype(int)
+    return JointData(camera, psi, np.arange(len(psi)) if indices is None else np.asarray(indices),
+                     np.vstack(xy), cat(sp), cat(sb), stripe_px[ok], rays[ok], cat(cp)[ok],
+                     cat(cb)[ok], np.asarray(board_R, float), np.asarray(board_T, float),
+                     None if corners_px is None else tuple(np.asarray(c, float) for c in corners_px),
+                     None if object_points is None else np.asarray(object_points, float),
+                     list(samples or []), board_spec,
+                     None if black_parity is None else tuple(black_parity))
+
+
+def joint_data(result, board_poses: str = "homography") -> JointData:
+    """:class:`JointData` from a :class:`lidarcal.pipeline.CalibrationResult`.
+
+    Board ``k`` gets scan segment ``pose.info["pairs"][k]`` (``points1`` for 0,
+    ``points2`` for 1) and the stripe centres ``camera_lines.centres_px[k]``.
+    ``board_poses``: "homography" (eq. 2, ``BoardView.R, T``) or "pnp"
+    (``cv2.solvePnP``, ``BoardView.R_pnp, T_pnp``).
+    """
+    if board_poses not in ("homography", "pnp"):
+        raise ValueError(f"board_poses must be 'homography' or 'pnp', got {board_poses!r}")
+    pnp = board_poses == "pnp"
+    scans, stripes = [], []
+    for p in result.positions:
+        pairs = p.pose.info.get("pairs", (0, 1))
+        seg = (p.segments.points1, p.segments.points2)
+        scans.append((seg[pairs[0]], seg[pairs[1]]))
+        stripes.append(tuple(p.camera_lines.centres_px))
+    boards = result.boards
+    spec: BoardSpec | None = getattr(getattr(result, "dataset", None), "v_board", None)
+    obj = spec.object_points() if spec is not None else None
+    parity = None
+    if spec is not None:
+        from ..ranging import black_parity
+
+        parity = tuple(black_parity(b, result.camera, spec) for b in boards)
+    return build_joint_data(result.camera, [p.psi_deg for p in result.positions], scans, stripes,
+                            np.array([b.R_pnp if pnp else b.R for b in boards]),
+                            np.array([b.T_pnp if pnp else b.T for b in boards]),
+                            [b.corners_px for b in boards] if obj is not None else None, obj,
+                            [p.pose for p in result.positions], [p.index for p in result.positions],
+                            spec, parity)

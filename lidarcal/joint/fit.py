@@ -1,0 +1,395 @@
+"""The joint fit itself: starts, robust passes, noise re-estimation, jitter, covariance."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..geometry import Plane
+from ..ranging import DATA_SHARE, RANGING_SIGNIFICANCE, RangingModel, RangingPrior
+from ..ranging import ranging_prior as _ranging_prior
+from ..turntable import Axis
+from .data import JointData, joint_data
+from .jitter import angle_jitter
+from .model import JointModel
+from .moments import irls_moments, moments_usable
+from .params import (
+    CORNER_FLOOR_PX,
+    F_SCALE,
+    JITTER_LR,
+    MIN_POINTS_PER_BOARD,
+    N_BOARD,
+    N_RIG,
+    _Base,
+    _boards,
+    _rig,
+)
+from .problem import _Problem
+from .solver import _covariance, _rho, irls_lm
+
+
+def _start_bases(result_or_models, data: JointData, psi_ref: float) -> list[_Base]:
+    bases = []
+    for m in result_or_models:
+        if m is None:
+            continue
+        p = m.pose(psi_ref)
+        bases.append(_Base.make(m.axis.direction, m.axis.point, p.R, p.T, data.board_R, data.board_T))
+    if not bases:
+        raise ValueError("fit_joint needs a start model (rigid or paper)")
+    return bases
+
+
+def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
+                   loss: str = "soft_l1", psi_ref_deg: float | None = None,
+                   f_scale: float = F_SCALE, solver: str = "moments",
+                   correlated: bool = True,
+                   corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True,
+                   ranging: bool = True, ranging_prior: RangingPrior | None = None) -> JointModel:
+    """Joint fit on prepared observations; ``starts`` are pose functions (axis + ``pose``).
+
+    See :func:`fit_joint`. Every start is refined once with the start's noise
+    scales and the lowest robust cost wins; then the noise scales are
+    re-estimated from the residuals, the stripe scale factors recomputed, and
+    the fit repeated (twice). With ``ranging`` the range offset (and, when the
+    data tell the returns from black squares, the dark-square extra) are
+    estimated with the rig (:mod:`lidarcal.ranging`), under ``ranging_prior``
+    (default: the wide :class:`lidarcal.ranging.RangingPrior`).
+    """
+    if data.n_positions < 2:
+        raise ValueError(f"the joint fit needs at least 2 positions, got {data.n_positions}")
+    if len(data.scan_xy) == 0:
+        raise ValueError("no scan points: the joint fit needs the board returns of the scans")
+    use_corners = fit_planes and data.corners_px is not None
+    if fit_planes and not use_corners:
+        raise ValueError("fit_planes=True needs the board corners and object points (v_board)")
+    psi_ref = float(np.mean(data.psi_deg)) if psi_ref_deg is None else float(psi_ref_deg)
+    bases = _start_bases(starts, data, psi_ref)
+    prior = ranging_prior or RangingPrior()
+    n_rng = (2 if data.can_see_dark else 1) if ranging else 0
+    prior_arrays = (np.array([prior.offset_mm, prior.dark_extra_mm]),
+                    np.array([prior.offset_sigma_mm, prior.dark_extra_sigma_mm]))
+    n_par = N_RIG + (2 * N_BOARD if fit_planes else 0) + n_rng
+    x0 = np.zeros(n_par)
+
+    def _full(x):
+        """[rig | boards | ranging] with zero board steps when the boards are held."""
+        if fit_planes:
+            return x
+        return np.concatenate([x[:N_RIG], np.zeros(2 * N_BOARD), x[N_RIG:]])
+
+    def solve(prob: _Problem, x: np.ndarray, tol: float = 1e-12):
+        if solver == "moments" and moments_usable(prob, use_corners):
+            return irls_moments(prob, x, loss, f_scale, tol=tol)
+        if solver == "scipy":
+            from scipy.optimize import least_squares
+
+            return least_squares(prob.normalised, x, jac=prob.jacobian, args=(use_corners,),
+                                 loss=loss, f_scale=f_scale, x_scale="jac", method="trf",
+                                 xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=100)
+        return irls_lm(lambda v: prob.normalised(v, use_corners),
+                       lambda v: prob.jacobian(v, use_corners), x, loss, f_scale)
+
+    sols = []
+    for base in bases:
+        prob = _Problem(data, base, psi_ref, n_rng, prior_arrays)
+        prob.classify(_full(x0))
+        prob.set_stripe_scale(_full(x0))
+        prob.estimate_noise(x0, correlated=False)
+        sols.append((prob, solve(prob, x0, 1e-8)))  # to pick a start; the passes below finish
+    # costs are comparable only with the same noise model: rescore with the first start's
+    scores = []
+    for prob, sol in sols:
+        prob.scan, prob.stripe = sols[0][0].scan, sols[0][0].stripe
+        prob.sigma_corner = sols[0][0].sigma_corner
+        r = prob.normalised(_full(sol.x), use_corners)
+        scores.append(np.sum(_rho(r / f_scale, loss)))
+    best = int(np.argmin(scores))
+    prob, sol = sols[best]
+    x = sol.x
+
+    def refine(prob: _Problem, x: np.ndarray):
+        """Noise re-estimated at ``x``, outliers dropped, solved again."""
+        prob.classify(_full(x))
+        prob.set_stripe_scale(_full(x))
+        prob.estimate_noise(x, correlated)
+        prob.reject(_full(x))
+        return solve(prob, x)
+
+    for _ in range(2):
+        sol = refine(prob, x)
+        x = sol.x
+
+    def rebased(prob: _Problem, x: np.ndarray, t: np.ndarray) -> _Problem:
+        """The problem re-based at ``x`` (so x = 0 there), with the given prior: its
+        covariance is about the solution."""
+        xr, rv = prob.split(_full(x))
+        k, a, R_ref, T_ref = _rig(xr, prob.base)
+        bR, bT = _boards(xr, prob.base)
+        out = _Problem(data, _Base.make(k, a, R_ref, T_ref, bR, bT, rv), psi_ref, n_rng,
+                       prior_arrays)
+        out.t = t
+        out.scale_px, out.scan, out.stripe, out.dark = prob.scale_px, prob.scan, prob.stripe, prob.dark
+        out.sigma_corner = prob.sigma_corner
+        out.corner_floor_px = float(corner_floor_px)
+        return out
+
+    # ranging terms the data do not move significantly from the prior are held at the
+    # prior's mean (the pose stays as with exact ranges); their uncertainty stays in every
+    # sigma: the covariance below is the one with the terms free (marginal = conditional +
+    # the held terms' posterior variance propagated)
+    held: tuple[int, ...] = ()
+    decided = None  # (problem, covariance) at the decision: the final ones if nothing moves
+    if n_rng:
+        p = rebased(prob, x, prob.t)
+        decided = (p, _covariance(p, fit_planes, loss, f_scale))
+        c_all = decided[1][0]
+        _, rv = prob.split(_full(x))
+        sig = _ranging_sigmas(c_all, p.sandwich, rv, prob.dark)
+        z = np.abs(rv[:n_rng] - prior_arrays[0][:n_rng]) / np.maximum(sig, 1e-300)
+        held = tuple(int(j) for j in np.flatnonzero(z <= RANGING_SIGNIFICANCE))
+        if held:
+            rng0 = prob.base.ranging.copy()
+            x = x.copy()
+            for j in held:
+                rng0[j] = prior_arrays[0][j]
+                x[len(x) - n_rng + j] = 0.0
+            prob.base = replace(prob.base, ranging=rng0)
+            prob.frozen = held
+            sol = solve(prob, x)  # same noise model and kept residuals, terms held
+            x = sol.x
+    # encoder jitter (beyond the paper): per-position angle corrections, then the rig again
+    t_reported = prob.t.copy()
+    jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated) if jitter else None
+    if jit is not None and jit["lr"] > JITTER_LR:
+        prob.t = t_reported + np.radians(jit["correction_deg"])
+        sol = refine(prob, x)
+        x = sol.x
+        jit = angle_jitter(prob, x, t_reported, loss, f_scale, correlated)
+    applied = jit is not None and jit["lr"] > JITTER_LR
+    t_final = t_reported + np.radians(jit["correction_deg"]) if applied else t_reported
+    # re-base at the solution so the covariance is about it (x = 0); ranging terms free
+    xr, rv = prob.split(_full(x))
+    bR, bT = _boards(xr, prob.base)
+    if decided is not None and not applied:
+        # same angles and noise model; held terms moved the rig by less than its sigma, so
+        # the Jacobian there (the covariance, about the local steps) is the same
+        cov_all, null_all, s2 = decided[1]
+        sandwich = decided[0].sandwich
+        prob = rebased(prob, x, t_final)
+        prob.sandwich = sandwich
+    else:
+        prob = rebased(prob, x, t_final)
+        cov_all, null_all, s2 = _covariance(prob, fit_planes, loss, f_scale)
+    base = prob.base
+    cov, null = cov_all[:N_RIG, :N_RIG], null_all[:N_RIG]
+    axis = Axis.from_point_direction(base.a, base.k)
+    rs, rp, rc = prob.blocks(np.zeros(N_RIG + 2 * N_BOARD + n_rng))
+    noise = {}
+    for name, grp, unit_ in (("scan", prob.scan, "mm"), ("stripe", prob.stripe, "px")):
+        for b in range(2):
+            noise[f"{name}{b}_{unit_}"] = float(grp.sigma[b])
+            noise[f"{name}{b}_offset_{unit_}"] = float(np.sqrt(grp.var0[b]))
+            noise[f"{name}{b}_tilt_{unit_}_per_{unit_}"] = float(np.sqrt(grp.var1[b]))
+    if data.corners_px is not None:
+        noise["corner_px"] = float(prob.sigma_corner)
+    corrections = {int(i): (float(c), float(e)) for i, c, e in
+                   zip(data.indices, jit["correction_deg"], jit["correction_sigma_deg"])} if applied else {}
+    jitter_deg = float(jit["sigma_deg"]) if applied else 0.0
+    model = JointModel(axis, psi_ref, base.R, base.T, cov, noise)
+    warn = joint_warnings(data, model, null)
+    rmodel = None
+    if n_rng:
+        rmodel, rwarn = _ranging_model(rv, _ranging_sigmas(cov_all, prob.sandwich, rv, prob.dark), n_rng,
+                                       prior, prob.dark, held)
+        warn += rwarn
+    info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
+            "status": int(sol.status), "start": best, "fit_planes": fit_planes,
+            "residuals": {"scan_mm": rs, "stripe_px": rp, "corner_px": rc},
+            "board_planes": tuple(Plane.from_normal_point(bR[j][:, 2], bT[j]) for j in range(2)),
+            "n_scan": len(rs), "n_stripe": len(rp), "stripes": len(data.stripe_px) > 0,
+            "rejected_scan": int((prob.scan.w == 0).sum()),
+            "rejected_stripe": int((prob.stripe.w == 0).sum()), "jitter": jit,
+            "scan_dark": prob.dark, "ranging_covariance": cov_all[N_RIG:, N_RIG:],
+            "ranging_rig_covariance": cov_all[N_RIG:, :N_RIG]}
+    return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
+                      jitter_deg, corrections, rmodel)
+
+
+def _ranging_sigmas(cov_all: np.ndarray, sandwich: np.ndarray | None, rv: np.ndarray,
+                    dark: np.ndarray) -> np.ndarray:
+    """1-sigma of the ranging terms: the larger of the model's and the cluster-robust one
+    (positions as clusters, :func:`lidarcal.joint.solver._cluster_covariance`); the dark
+    extra adds, in quadrature, the error of the returns near a square edge (partly dark,
+    :data:`lidarcal.ranging.EDGE_BLEND_MM`): up to half the extra on that share of the
+    returns, uniform, ``0.5 |extra| share / sqrt(3)``."""
+    v = np.clip(np.diag(cov_all)[N_RIG:], 0, None)
+    if sandwich is not None:
+        v = np.maximum(v, np.clip(np.diag(sandwich)[N_RIG:], 0, None))
+    if len(v) > 1 and len(dark):
+        share = float(np.mean((dark > 0) & (dark < 1)))
+        v[1] += (0.5 * abs(rv[1]) * share) ** 2 / 3.0
+    return np.sqrt(v)
+
+
+def _ranging_model(rv: np.ndarray, sig: np.ndarray, n_rng: int, prior: RangingPrior,
+                   dark: np.ndarray, held: tuple[int, ...] = ()) -> tuple[RangingModel, list[str]]:
+    """The fitted ranging terms with their 1-sigma, and a warning for each term the data do
+    not determine (posterior sigma above ``DATA_SHARE`` of the prior's: the prior decides).
+    ``held``: terms held at the prior's mean (not significant)."""
+    prior_sig = (prior.offset_sigma_mm, prior.dark_extra_sigma_mm)
+    names = ("offset", "dark_extra")[:n_rng]
+    determined, warn = [], []
+    if prior.source == "dataset.json":
+        src = (f"dataset.json lidar.range_offset_mm = {prior.offset_mm:g} +- "
+               f"{prior.offset_sigma_mm:g} mm")
+    elif prior.source == "default":
+        src = (f"a wide default prior of 0 +- {prior.offset_sigma_mm:g} mm (dataset.json gives no "
+               "lidar.range_offset_mm / range_offset_sigma_mm: give the datasheet's systematic error)")
+    else:
+        src = f"the {prior.source} prior {prior.offset_mm:g} +- {prior.offset_sigma_mm:g} mm"
+    for j, name in enumerate(names):
+        if not np.isfinite(sig[j]) or sig[j] > DATA_SHARE * prior_sig[j]:
+            what = ("the range offset" if j == 0 else
+                    f"the extra range of dark squares ({int(np.sum(dark > 0))} returns on black "
+                    "squares)")
+            warn.append(f"the data do not separate {what} from the rig (posterior sigma "
+                        f"{sig[j]:.3g} mm against the prior's {prior_sig[j]:g} mm): "
+                        + (f"{src} decides it, and its sigma is in every rig sigma" if j == 0 else
+                           f"a wide prior of 0 +- {prior_sig[j]:g} mm decides it"))
+        else:
+            determined.append(name)
+    rm = RangingModel(float(rv[0]), float(sig[0]), float(rv[1]) if n_rng > 1 else 0.0,
+                      float(sig[1]) if n_rng > 1 else 0.0, prior=prior, estimated=names,
+                      determined=tuple(determined), held=tuple(names[j] for j in held))
+    return rm, warn
+
+
+
+MIN_COVERAGE = 0.7  # scan span / stripe span below this: fragments of a board
+
+
+def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None = None) -> list[str]:
+    """Warnings for weak setups (few positions, short sweep, axis ~ scan-plane normal, ...)."""
+    out = []
+    n = data.n_positions
+    span = float(np.ptp(data.psi_deg))
+    if n < 5:
+        out.append(f"only {n} positions: the joint fit has little redundancy; capture at least 5")
+    if span < 5.0:
+        out.append(f"turntable positions span only {span:.2f} deg: the axis is poorly determined; "
+                   "sweep at least ~5-10 deg")
+    z = model.R_ref[:, 2]
+    ang = np.degrees(np.arccos(min(abs(float(z @ model.axis.direction)), 1.0)))
+    if ang < 10.0:
+        out.append(f"the turntable axis is only {ang:.1f} deg from the scan-plane normal: turning "
+                   "barely moves the scan plane, the axis is weakly determined")
+    for b in range(2):
+        cnt = np.bincount(data.scan_pos[data.scan_board == b], minlength=n)
+        bad = np.flatnonzero(cnt < MIN_POINTS_PER_BOARD)
+        if len(bad):
+            out.append(f"board {b} has fewer than {MIN_POINTS_PER_BOARD} scan returns at "
+                       f"{len(bad)} position(s) (indices {data.indices[bad].tolist()[:10]}): "
+                       "only one board hit there")
+        if len(data.stripe_px):
+            cs = np.bincount(data.stripe_pos[data.stripe_board == b], minlength=n)
+            bad = np.flatnonzero(cs < MIN_POINTS_PER_BOARD)
+            if len(bad):
+                out.append(f"board {b} shows fewer than {MIN_POINTS_PER_BOARD} stripe centres at "
+                           f"{len(bad)} position(s) (indices {data.indices[bad].tolist()[:10]})")
+    if null is not None and null.shape[1]:
+        out.append(f"{null.shape[1]} combination(s) of the rig parameters are not determined by the "
+                   "data (rank-deficient Jacobian); their sigmas are reported as inf")
+    cover = np.min(np.where(np.isfinite(c := scan_coverage(data, model)), c, np.inf), axis=1)
+    short = np.flatnonzero(cover < MIN_COVERAGE)  # positions without stripes: inf, never short
+    if len(short) > 0.1 * n:
+        out.append(f"at {len(short)} of {n} positions (indices {data.indices[short].tolist()[:10]}) "
+                   f"the kept scan returns span less than {MIN_COVERAGE:.0%} of the board the laser "
+                   f"stripe crosses (median {float(np.median(cover[short])):.0%}): the V split kept fragments "
+                   "of the boards (ranges in steps, e.g. dark squares read farther?); the fit, and "
+                   "its ranging terms, rest on those fragments")
+    return out
+
+
+def scan_coverage(data: JointData, model) -> np.ndarray:
+    """Per position and board (N, 2): the span of the kept scan returns along the board's
+    laser line over the span of its stripe centres (1: the scan covers what the camera sees
+    of the line; NaN: too few points). Returns in the camera frame by ``model.pose``."""
+    out = np.full((data.n_positions, 2), np.nan)
+    for i in range(data.n_positions):
+        p = model.pose(float(data.psi_deg[i]))
+        for b in range(2):
+            ray = data.stripe_rays[(data.stripe_pos == i) & (data.stripe_board == b)]
+            xy = data.scan_xy[(data.scan_pos == i) & (data.scan_board == b)]
+            if len(ray) < 5 or len(xy) < 2:
+                continue
+            n = data.board_R[b][:, 2]
+            P = ray * (float(n @ data.board_T[b]) / (ray @ n))[:, None]
+            X = xy[:, :1] * p.R[:, 0] + xy[:, 1:] * p.R[:, 1] + p.T
+            line = np.cross(n, p.R[:, 2])
+            line /= max(np.linalg.norm(line), 1e-12)
+            out[i, b] = np.ptp(X @ line) / max(np.ptp(P @ line), 1e-9)
+    return out
+
+
+def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripes: bool = True,
+              correlated: bool = True, board_poses: str = "pnp", psi_ref_deg: float | None = None,
+              corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True,
+              ranging: bool = True, ranging_prior: RangingPrior | None = None) -> JointModel:
+    """Joint maximum-likelihood fit of the rig to all stripe pixels and scan points (beyond the paper).
+
+    Parameters
+    ----------
+    result : lidarcal.pipeline.CalibrationResult
+        Section 1 at every position (stripe centres, scan segments, single-shot
+        poses with their segment <-> board assignment) and the section-2 models
+        (``rigid_model``, ``paper_model``), used as starting points.
+    fit_planes : bool
+        Also refine both board poses (started from ``board_poses``); the
+        chessboard corners' reprojection residuals then enter the fit.
+    loss : str
+        Robust loss (scipy's names: "soft_l1", "huber", "cauchy", "arctan",
+        "linear"); residuals are in noise sigmas, the loss scale is ``F_SCALE``.
+    stripes : bool
+        False: scan points only (the Zhang-Pless style point-on-plane
+        calibration with the turntable model). With one V-board the scan alone
+        cannot see the LiDAR slide along the hinge: that direction stays at the
+        start and is reported with infinite sigma (and a warning).
+    correlated : bool
+        Model per-segment / per-stripe correlated errors (see the module doc);
+        False: white noise only (optimistic covariance on real stripe data).
+    board_poses : {"pnp", "homography"}
+        Which board poses (planes) to hold, or to start from with ``fit_planes``:
+        ``cv2.solvePnP`` (the corners' maximum-likelihood pose, default) or the
+        paper's homography (eqs. 2-3).
+    psi_ref_deg : float, optional
+        Reference angle of ``pose_ref`` (default: the mean psi).
+    corner_floor_px : float
+        Least per-coordinate corner error assumed for the planes' uncertainty.
+    jitter : bool
+        Estimate the turntable's angle jitter and correct each position's angle
+        when the data show one (:func:`angle_jitter`).
+    ranging : bool
+        Estimate the LiDAR's range offset and the extra range of returns from
+        black squares with the rig (:mod:`lidarcal.ranging`); False: ranges exact.
+    ranging_prior : RangingPrior, optional
+        Prior of the ranging terms; default from the dataset's ``lidar``
+        (``range_offset_mm``, ``range_offset_sigma_mm``) or the wide default.
+
+    Returns
+    -------
+    JointModel
+        ``sigma(psi)`` gives 1-sigma uncertainties, ``warnings`` weak-setup warnings,
+        ``noise`` the estimated noise scales, ``info`` residuals and solver details.
+    """
+    data = joint_data(result, board_poses)
+    if not stripes:
+        data = data.without_stripes()
+    ds = getattr(result, "dataset", None)
+    if ranging_prior is None and getattr(ds, "raw", None) is not None:
+        ranging_prior = _ranging_prior(ds.raw, ds.dataset_json)
+    return fit_joint_data(data, [result.rigid_model, result.paper_model], fit_planes=fit_planes,
+                          loss=loss, psi_ref_deg=psi_ref_deg, correlated=correlated,
+                          corner_floor_px=corner_floor_px, jitter=jitter, ranging=ranging,
+                          ranging_prior=ranging_prior)

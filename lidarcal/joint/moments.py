@@ -1,0 +1,242 @@
+"""The joint fit on per-segment second moments: O(positions) per iteration (issue 15).
+
+Every residual of the joint fit is linear in a short homogeneous vector of its
+observation, with coefficients that depend on the parameters only through its
+position and board:
+
+* scan return (eq. 28 against eq. 3), ``h = [x, y, u_x, u_y, dark u_x, dark u_y, 1]``,
+  ``c = [a, b, -offset a, -offset b, -extra a, -extra b, n.T - d]`` with
+  ``a = n . R_x``, ``b = n . R_y`` (``n``, ``d``: the board's plane; ``R``, ``T``:
+  the LiDAR pose at that position; ``u`` the beam direction; ranging terms of
+  :mod:`lidarcal.ranging`);
+* stripe centre back-projected onto its board (eq. 5) against the laser plane,
+  ``h = [s P, s]``, ``c = [z, -T . z]`` (``P`` the point on the board, fixed while the
+  planes are held; ``s`` the pixel scale; ``z`` the LiDAR's z axis).
+
+The generalised-least-squares whitening of :class:`lidarcal.joint.noise._Groups`
+(per-group offset and tilt) is linear too, so it acts on ``h``. With the robust
+IRLS weights ``W`` held, the weighted sum of squares of a group is exactly
+``c^T Q c`` with ``Q = sum W h~ h~^T`` (``h~`` the whitened ``h``): a
+Gauss-Newton/Levenberg-Marquardt step needs only the (k, k) ``Q`` of each group
+and the derivatives of ``c``, never the ~1e5-row Jacobian. The robust weights are
+recomputed between these inner solves (iteratively reweighted least squares); at
+convergence the stationarity condition is that of the robust cost, the same
+optimum as :func:`lidarcal.joint.solver.irls_lm`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .noise import _Groups
+from .params import _STEPS, N_RIG, _poses, _rig
+from .problem import _Problem
+from .solver import LMResult, _irls_weights, _rho
+
+
+def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
+    """``V^-1/2`` of every column of ``h`` (rows grouped and sorted by ``grp.gid``)."""
+    return grp.whiten_columns(h)
+
+
+def _pose_derivatives(prob: _Problem, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """R (N, 3, 3), T (N, 3) at ``xr`` and d[R_x, R_y, R_z, T] / d rig (N, 12, 10)."""
+    R, T = _poses(*_rig(xr, prob.base), prob.t)
+    h = _STEPS[:N_RIG]
+    G = np.zeros((len(prob.t), 12, N_RIG))
+    for j in range(N_RIG):
+        dx = np.zeros(N_RIG)
+        dx[j] = h[j]
+        Rp, Tp = _poses(*_rig(xr[:N_RIG] + dx, prob.base), prob.t)
+        Rm, Tm = _poses(*_rig(xr[:N_RIG] - dx, prob.base), prob.t)
+        G[:, :, j] = (np.concatenate([Rp.transpose(0, 2, 1).reshape(-1, 9), Tp], 1)
+                      - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
+    return R, T, G
+
+
+class _MomentProblem:
+    """The scan and stripe blocks of a :class:`_Problem` as per-group homogeneous observations
+    (planes held, the noise model and the masks as they are in ``prob``)."""
+
+    def __init__(self, prob: _Problem):
+        d = prob.data
+        self.prob = prob
+        self.n_par = N_RIG + prob.n_ranging
+        u, dark = prob.scan_u, prob.dark
+        hs = np.column_stack([d.scan_xy, u, dark[:, None] * u, np.ones(len(u))])
+        self.hs = _whitened(prob.scan, hs) * prob.scan.w[:, None]
+        bR, bT = prob.base.board_R, prob.base.board_T
+        self.nb = bR[:, :, 2]
+        self.db = np.einsum("ij,ij->i", self.nb, bT)
+        b = d.stripe_board
+        ray = d.stripe_rays
+        P = ray * (self.db[b] / np.einsum("ij,ij->i", ray, self.nb[b]))[:, None]
+        s = prob.scale_px[:, None]
+        hp = np.column_stack([s * P, s]) if len(P) else np.zeros((0, 4))
+        self.hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]
+        self.gs, self.gp = prob.scan.gid, prob.stripe.gid
+        self.n_groups = prob.scan.n_groups
+        self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
+        self.cuts_p = np.searchsorted(self.gp, np.arange(self.n_groups + 1))
+
+    def coefficients(self, x: np.ndarray, derivatives: bool = True
+                     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+        """Per group ``c`` and ``dc/dx`` for scans (G, 7), (G, 7, n) and stripes (G, 4), (G, 4, n)
+        (without ``derivatives``: ``c`` only, None for the derivatives)."""
+        prob = self.prob
+        xr, rv = prob.split(x)
+        if not derivatives:
+            R, T = _poses(*_rig(xr, prob.base), prob.t)
+            pos = np.repeat(np.arange(len(prob.t)), 2)
+            n = self.nb[np.tile([0, 1], len(prob.t))]
+            a = np.einsum("gi,gi->g", n, R[pos, :, 0])
+            b = np.einsum("gi,gi->g", n, R[pos, :, 1])
+            gam = np.einsum("gi,gi->g", n, T[pos]) - self.db[np.tile([0, 1], len(prob.t))]
+            off, ex = rv[0], rv[1]
+            z = R[pos, :, 2]
+            return (np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam]), None,
+                    np.column_stack([z, -np.einsum("gi,gi->g", T[pos], z)]), None)
+        R, T, G = _pose_derivatives(prob, xr)
+        n_pos = len(prob.t)
+        pos = np.repeat(np.arange(n_pos), 2)
+        brd = np.tile([0, 1], n_pos)
+        n = self.nb[brd]  # (G, 3)
+        Rg, Tg, Gg = R[pos], T[pos], G[pos]
+        a = np.einsum("gi,gi->g", n, Rg[:, :, 0])
+        b = np.einsum("gi,gi->g", n, Rg[:, :, 1])
+        gam = np.einsum("gi,gi->g", n, Tg) - self.db[brd]
+        da = np.einsum("gi,gij->gj", n, Gg[:, 0:3])
+        db = np.einsum("gi,gij->gj", n, Gg[:, 3:6])
+        dg = np.einsum("gi,gij->gj", n, Gg[:, 9:12])
+        off, ex = rv[0], rv[1]
+        cs = np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam])
+        Js = np.zeros((len(pos), 7, self.n_par))
+        Js[:, 0, :N_RIG], Js[:, 1, :N_RIG] = da, db
+        Js[:, 2, :N_RIG], Js[:, 3, :N_RIG] = -off * da, -off * db
+        Js[:, 4, :N_RIG], Js[:, 5, :N_RIG] = -ex * da, -ex * db
+        Js[:, 6, :N_RIG] = dg
+        if prob.n_ranging >= 1:
+            Js[:, 2, N_RIG], Js[:, 3, N_RIG] = -a, -b
+        if prob.n_ranging >= 2:
+            Js[:, 4, N_RIG + 1], Js[:, 5, N_RIG + 1] = -a, -b
+        for j in prob.frozen:  # held ranging terms: no column
+            Js[:, :, N_RIG + j] = 0.0
+        z = Rg[:, :, 2]
+        dz = Gg[:, 6:9]
+        cp = np.column_stack([z, -np.einsum("gi,gi->g", Tg, z)])
+        Jp = np.zeros((len(pos), 4, self.n_par))
+        Jp[:, :3, :N_RIG] = dz
+        Jp[:, 3, :N_RIG] = -(np.einsum("gi,gij->gj", Tg, dz) + np.einsum("gi,gij->gj", z, Gg[:, 9:12]))
+        return cs, Js, cp, Jp
+
+    def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
+        return (np.einsum("mk,mk->m", self.hs, cs[self.gs]),
+                np.einsum("mk,mk->m", self.hp, cp[self.gp]))
+
+    def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4)."""
+        Qs = np.zeros((self.n_groups, 7, 7))
+        Qp = np.zeros((self.n_groups, 4, 4))
+        for Q, h, W, cuts in ((Qs, self.hs, Ws, self.cuts_s), (Qp, self.hp, Wp, self.cuts_p)):
+            hw = h * W[:, None]
+            for g in range(self.n_groups):  # rows sorted by group: one small product each
+                a, b = cuts[g], cuts[g + 1]
+                if b > a:
+                    Q[g] = hw[a:b].T @ h[a:b]
+        return Qs, Qp
+
+
+def moments_usable(prob: _Problem, use_corners: bool) -> bool:
+    """The moment form applies with the planes held and rows grouped (as built)."""
+    return (not use_corners and prob.scan._sorted and prob.stripe._sorted)
+
+
+def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.0,
+                 max_outer: int = 50, max_inner: int = 30, tol: float = 1e-12,
+                 inner_tol: float = 1e-12) -> LMResult:
+    """Robust fit of ``prob`` (planes held) by IRLS on per-group moments (module docstring).
+
+    Outer loop: residuals at ``x``, robust weights ``W = rho'``, group moments ``Q``.
+    Inner loop: Levenberg-Marquardt on ``sum c^T Q c`` (+ the ranging prior, weighted
+    alike), exact for the held weights. Stops when an outer pass moves the robust
+    cost by less than ``tol`` (relative). Returns the robust cost at the end
+    (scipy's definition, as :func:`lidarcal.joint.solver.irls_lm`).
+    """
+    mp = _MomentProblem(prob)
+    x = np.asarray(x0, dtype=float).copy()
+    nfev, status = 0, 0
+
+    def robust_cost(x: np.ndarray):
+        cs, Js, cp, Jp = mp.coefficients(x, derivatives=False)
+        rs, rp = mp.residuals(cs, cp)
+        rr = prob.prior_residuals(x)
+        r = np.concatenate([rs, rp, rr])
+        return 0.5 * f_scale**2 * float(np.sum(_rho(r / f_scale, loss))), (rs, rp, rr), (cs, Js, cp, Jp)
+
+    cost, (rs, rp, rr), _ = robust_cost(x)
+    nfev += 1
+    Jr = np.zeros((prob.n_ranging, mp.n_par))
+    if prob.n_ranging:
+        Jr[:, N_RIG:] = np.diag(1 / prob.prior_sigma[:prob.n_ranging])
+        for j in prob.frozen:
+            Jr[:, N_RIG + j] = 0.0
+    for _ in range(max_outer):
+        Ws = _irls_weights(rs / f_scale, loss)
+        Wp = _irls_weights(rp / f_scale, loss)
+        Wr = _irls_weights(rr / f_scale, loss)
+        Qs, Qp = mp.moments(Ws, Wp)
+
+        def quad(cs, cp, rr_, Qs=Qs, Qp=Qp, Wr=Wr):
+            return (float(np.sum(cs * (Qs @ cs[:, :, None])[:, :, 0]))
+                    + float(np.sum(cp * (Qp @ cp[:, :, None])[:, :, 0]))
+                    + float(np.sum(Wr * rr_ * rr_)))
+
+        xi = x.copy()
+        cs, Js, cp, Jp = mp.coefficients(xi)
+        q = quad(cs, cp, rr)
+        lam = 1e-4
+        for it in range(max_inner):
+            if it:
+                cs, Js, cp, Jp = mp.coefficients(xi)
+            QJs, QJp = Qs @ Js, Qp @ Jp
+            H = (Js.reshape(-1, mp.n_par).T @ QJs.reshape(-1, mp.n_par)
+                 + Jp.reshape(-1, mp.n_par).T @ QJp.reshape(-1, mp.n_par) + (Jr.T * Wr) @ Jr)
+            g = (QJs.reshape(-1, mp.n_par).T @ cs.ravel() + QJp.reshape(-1, mp.n_par).T @ cp.ravel()
+                 + (Jr.T * Wr) @ prob.prior_residuals(xi))
+            D = np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
+            while True:
+                try:
+                    step = -np.linalg.solve(H + lam * np.diag(D), g)
+                except np.linalg.LinAlgError:
+                    step = -np.linalg.lstsq(H + lam * np.diag(D), g, rcond=None)[0]
+                if abs(float(g @ step)) <= inner_tol * max(q, 1e-300):
+                    step = None  # converged: the predicted decrease is below rounding
+                    break
+                c2 = mp.coefficients(xi + step, derivatives=False)
+                q2 = quad(c2[0], c2[2], prob.prior_residuals(xi + step))
+                if np.isfinite(q2) and q2 <= q:
+                    break
+                lam *= 10.0
+                if lam > 1e10:
+                    step = None
+                    break
+            if step is None:
+                break
+            xi = xi + step
+            done = q - q2 <= inner_tol * max(q, 1e-300)
+            q = q2
+            lam = max(lam / 10.0, 1e-9)
+            if done:
+                break
+        cn, (rs2, rp2, rr2), _ = robust_cost(xi)
+        nfev += 1
+        if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
+            status = -1 if status == 0 else status
+            break
+        done = cost - cn <= tol * max(cost, 1e-300)
+        x, cost, (rs, rp, rr) = xi, cn, (rs2, rp2, rr2)
+        if done:
+            status = 1
+            break
+    return LMResult(x, cost, nfev, status)

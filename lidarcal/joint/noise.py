@@ -1,0 +1,161 @@
+"""Noise model of the joint fit: per-segment / per-stripe correlated errors (generalised least squares)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .params import _CHI1_MEDIAN, CLIP_SIGMAS, SIGNIFICANCE, _robust_sigma
+
+
+class _Groups:
+    """Noise model of one residual kind: per-(position, board) groups with correlated errors.
+
+    Residual ``i`` of group ``g`` (one board's scan segment or stripe at one
+    position) is ``e_i + b0_g + b1_g s_i``: white noise of sigma ``sigma[board]``
+    plus a random offset and a random tilt along the segment (``s_i``: centred
+    coordinate along it) with variances ``var0[board]``, ``var1[board]``. Stripe
+    centres carry such errors (sub-pixel locking of the centre estimator varies
+    slowly along a stripe and from one position to the next); ignoring them
+    makes the covariance far too optimistic. ``whiten`` applies ``V^-1/2``
+    (generalised least squares): with ``u0 = 1/sqrt(n)``, ``u1 = s/|s|``,
+    ``V^-1/2 = (I - g0 u0 u0^T - g1 u1 u1^T) / sigma``,
+    ``g_j = 1 - sqrt(sigma^2 / (sigma^2 + lambda_j))``, ``lambda0 = n var0``,
+    ``lambda1 = |s|^2 var1``.
+    """
+
+    def __init__(self, pos: np.ndarray, board: np.ndarray, coords: np.ndarray, n_pos: int):
+        self.gid = pos * 2 + board
+        self.n_groups = 2 * n_pos
+        self.board_of_group = np.arange(self.n_groups) % 2
+        self.n = np.bincount(self.gid, minlength=self.n_groups).astype(float)
+        sc = np.zeros(len(pos))
+        order = np.argsort(self.gid, kind="stable")
+        cuts = np.searchsorted(self.gid[order], np.arange(self.n_groups + 1))
+        for g in np.flatnonzero(self.n >= 3):
+            m = order[cuts[g]:cuts[g + 1]]
+            q = coords[m] - coords[m].mean(0)
+            _, _, vt = np.linalg.svd(q, full_matrices=False)
+            sc[m] = q @ vt[0]
+        self.sc = sc
+        # residuals come grouped (position by position, board 0 then 1): group sums of a
+        # whole Jacobian are then one np.add.reduceat instead of a bincount per column
+        self._sorted = bool(np.all(self.gid[1:] >= self.gid[:-1]))
+        starts = np.searchsorted(self.gid, np.arange(self.n_groups))
+        self._nonempty = np.flatnonzero(self.n > 0)
+        self._starts = starts[self._nonempty]
+        self.sigma = np.ones(2)
+        self.var0 = np.zeros(2)
+        self.var1 = np.zeros(2)
+        self.var0_g = self.var1_g = None
+        self.set_mask(np.ones(len(pos), bool))
+
+    def set_mask(self, keep: np.ndarray) -> None:
+        """Residuals that enter the fit (the group moments and the counts use only these)."""
+        self.w = np.asarray(keep, float)
+        self.n, self.ss = self._counts(self.w)
+        self._update()
+
+    def _counts(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = np.bincount(self.gid, w, minlength=self.n_groups)
+        ss = np.maximum(np.bincount(self.gid, w * self.sc**2, minlength=self.n_groups), 1e-300)
+        return n, ss
+
+    def set(self, sigma, var0, var1, var0_g=None, var1_g=None) -> None:
+        """Noise components per board; ``var*_g`` optionally per group (robust weights)."""
+        self.sigma = np.asarray(sigma, float)
+        self.var0 = np.asarray(var0, float)
+        self.var1 = np.asarray(var1, float)
+        self.var0_g = None if var0_g is None else np.asarray(var0_g, float)
+        self.var1_g = None if var1_g is None else np.asarray(var1_g, float)
+        self._update()
+
+    def _update(self) -> None:
+        b = self.board_of_group
+        s2 = self.sigma[b] ** 2
+        v0 = self.var0[b] if self.var0_g is None else self.var0_g
+        v1 = self.var1[b] if self.var1_g is None else self.var1_g
+        self.g0 = 1 - np.sqrt(s2 / (s2 + self.n * v0))
+        self.g1 = 1 - np.sqrt(s2 / (s2 + self.ss * v1))
+        self.sig_g = self.sigma[b]
+
+    def moments(self, r: np.ndarray, w: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Per-group mean and slope (least squares along ``s``) of ``r`` over the kept residuals."""
+        if w is None:
+            w, n, ss = self.w, self.n, self.ss
+        else:
+            n, ss = self._counts(w)
+        m0 = np.bincount(self.gid, w * r, minlength=self.n_groups) / np.maximum(n, 1e-300)
+        m1 = np.bincount(self.gid, w * r * self.sc, minlength=self.n_groups) / ss
+        return m0, m1
+
+    def whiten(self, r: np.ndarray) -> np.ndarray:
+        """``V^-1/2 r`` over the kept residuals (dropped ones do not enter the moments)."""
+        if len(r) == 0:
+            return r
+        m0, m1 = self.moments(r)
+        g = self.gid
+        return (r - self.g0[g] * m0[g] - self.g1[g] * m1[g] * self.sc) / self.sig_g[g]
+
+    def whiten_columns(self, J: np.ndarray) -> np.ndarray:
+        """:meth:`whiten` applied to every column of a Jacobian."""
+        if J.shape[0] == 0:
+            return J
+        if not self._sorted:
+            return np.column_stack([self.whiten(J[:, j]) for j in range(J.shape[1])])
+        wJ = J * self.w[:, None]
+        m0 = self._group_sums(wJ) / np.maximum(self.n, 1e-300)[:, None]
+        m1 = self._group_sums(wJ * self.sc[:, None]) / self.ss[:, None]
+        g = self.gid
+        return ((J - self.g0[g][:, None] * m0[g] - (self.g1[g] * self.sc)[:, None] * m1[g])
+                / self.sig_g[g][:, None])
+
+    def _group_sums(self, A: np.ndarray) -> np.ndarray:
+        """Per-group column sums of ``A`` (rows grouped by ``gid``, sorted)."""
+        out = np.zeros((self.n_groups, A.shape[1]))
+        if len(self._nonempty):
+            out[self._nonempty] = np.add.reduceat(A, self._starts, axis=0)
+        return out
+
+    def estimate(self, r: np.ndarray, floor: float) -> None:
+        """Method-of-moments noise components from residuals ``r`` at a fit (see class doc).
+
+        Residuals beyond ``CLIP_SIGMAS`` robust sigmas are left out. ``sigma``:
+        1.4826 x median absolute within-group residual (group offset and tilt
+        removed); ``var0 = mean(m0^2 - sigma^2 / n)``, ``var1 = mean(m1^2 -
+        sigma^2 / |s|^2)`` over the board's groups, set only when significant
+        (``SIGNIFICANCE`` standard errors above zero), else 0.
+        """
+        if len(r) == 0:
+            return
+        sig, v0, v1 = np.ones(2), np.zeros(2), np.zeros(2)
+        g = self.gid
+        w = (np.abs(r) <= CLIP_SIGMAS * _robust_sigma(r, floor)).astype(float)
+        m0, m1 = self.moments(r, w)
+        within = r - m0[g] - m1[g] * self.sc
+        for b in range(2):
+            sel = self.board_of_group[g] == b
+            if not sel.any():
+                continue
+            sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
+        w = (np.abs(within) <= CLIP_SIGMAS * sig[self.board_of_group[g]]).astype(float)
+        a0, a1 = self.moments(r, w)
+        n, ss = self._counts(w)
+        vg = [np.zeros(self.n_groups), np.zeros(self.n_groups)]
+        for b in range(2):
+            grp = (self.board_of_group == b) & (n >= 3)
+            G = int(grp.sum())
+            if G == 0:
+                continue
+            # a component is kept only when significant: without it, m^2 / var(m | white)
+            # averages to 1 +- sqrt(2 / G) (chi-square, 1 dof, G groups)
+            for v, a, nn, out in ((v0, a0, n, vg[0]), (v1, a1, ss, vg[1])):
+                white = sig[b] ** 2 / np.maximum(nn[grp], 1e-300)
+                if np.mean(a[grp] ** 2 / white) > 1 + SIGNIFICANCE * np.sqrt(2.0 / G):
+                    # typical level from the median (chi-square 1 dof: median 0.455), and a
+                    # group with a larger effect keeps its own: heavy-tailed group errors
+                    # (a stripe on an unlucky pixel phase) then cannot steer the fit
+                    v[b] = max(float(np.median(a[grp] ** 2) / _CHI1_MEDIAN
+                                     - np.median(white)), 0.0)
+                    out[grp] = np.maximum(v[b], a[grp] ** 2 - white)
+        self.set(sig, v0, v1, vg[0], vg[1])

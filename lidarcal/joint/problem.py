@@ -1,0 +1,302 @@
+"""Residuals and Jacobians of the joint fit (scan points and stripe centres against the planes)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..geometry import unit
+from .data import JointData
+from .noise import _Groups
+from .params import (
+    _STEPS,
+    N_BOARD,
+    N_RANGING,
+    N_RIG,
+    REJECT_SIGMAS,
+    _Base,
+    _boards,
+    _mm,
+    _poses,
+    _rig,
+    _robust_sigma,
+)
+
+
+class _Problem:
+    """Residual blocks of the joint fit.
+
+    Parameter vectors are ``[rig 10 | boards 12 (optional) | ranging n_ranging]``:
+    the last ``n_ranging`` entries (0, 1: range offset, 2: and the dark-square
+    extra, mm, :mod:`lidarcal.ranging`) are steps from ``base.ranging``. The
+    ranging prior enters as ``n_ranging`` pseudo-residuals after the stripes.
+    """
+
+    def __init__(self, data: JointData, base: _Base, psi_ref_deg: float, n_ranging: int = 0,
+                 prior: tuple[np.ndarray, np.ndarray] | None = None):
+        self.data = data
+        self.base = base
+        self.n_ranging = int(n_ranging)
+        mean, sig = prior if prior is not None else (np.zeros(N_RANGING), np.full(N_RANGING, np.inf))
+        self.prior_mean, self.prior_sigma = np.asarray(mean, float), np.asarray(sig, float)
+        rho = np.linalg.norm(data.scan_xy, axis=1)
+        self.scan_u = data.scan_xy / np.where(rho > 0, rho, 1.0)[:, None]  # beam directions
+        self.dark = (np.zeros(len(data.scan_xy)) if data.scan_dark is None
+                     else np.asarray(data.scan_dark, float))
+        self.t = np.radians(data.psi_deg - psi_ref_deg)
+        self.scale_px = np.ones(len(data.stripe_px))
+        n = data.n_positions
+        self.scan = _Groups(data.scan_pos, data.scan_board, data.scan_xy, n)
+        self.stripe = _Groups(data.stripe_pos, data.stripe_board, data.stripe_px, n)
+        self.sigma_corner = 1.0
+        self.corner_floor_px = 0.0
+        self.sandwich: np.ndarray | None = None  # cluster-robust covariance (solver._covariance)
+        self.frozen: tuple[int, ...] = ()  # ranging terms held at base.ranging (zero columns)
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rig + boards part of ``x``, ranging terms (2,) in mm)."""
+        m = len(x) - self.n_ranging
+        rv = self.base.ranging.copy()
+        rv[:self.n_ranging] += x[m:]
+        return x[:m], rv
+
+    def classify(self, x: np.ndarray) -> None:
+        """Which returns hit a black square (:func:`lidarcal.ranging.dark_returns`), with the
+        LiDAR poses and board poses at ``x``; held when the data give ``scan_dark``."""
+        d = self.data
+        if d.scan_dark is not None or not d.can_see_dark:
+            return
+        from ..ranging import dark_returns
+
+        xr, _ = self.split(x)
+        R, T = _poses(*_rig(xr, self.base), self.t)
+        bR, bT = _boards(xr, self.base)
+        p, u = d.scan_pos, self.scan_u
+        dirs = R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:]
+        dark = np.zeros(len(p))
+        for b in range(2):
+            m = d.scan_board == b
+            dark[m] = dark_returns(T[p[m]], dirs[m], bR[b], bT[b], d.board_spec, d.black_parity[b])
+        self.dark = dark
+
+    def prior_residuals(self, x: np.ndarray) -> np.ndarray:
+        """``(term - prior mean) / prior sigma`` of the estimated ranging terms."""
+        if self.n_ranging == 0:
+            return np.zeros(0)
+        _, rv = self.split(x)
+        k = self.n_ranging
+        return (rv[:k] - self.prior_mean[:k]) / self.prior_sigma[:k]
+
+    def estimate_noise(self, x: np.ndarray, correlated: bool) -> None:
+        """Noise scales of every residual kind from the residuals at ``x`` (:meth:`_Groups.estimate`);
+        without ``correlated`` the per-segment / per-stripe components are zero."""
+        rs, rp, rc = self.blocks(x)
+        self.scan.estimate(rs, 1e-9 * max(float(np.abs(self.data.board_T).max()), 1.0))
+        self.stripe.estimate(rp, 1e-6)
+        if not correlated:
+            self.scan.set(self.scan.sigma, [0, 0], [0, 0])
+            self.stripe.set(self.stripe.sigma, [0, 0], [0, 0])
+        self.sigma_corner = _robust_sigma(rc, 1e-6)
+
+    def reject(self, x: np.ndarray) -> None:
+        """Drop residuals beyond ``REJECT_SIGMAS`` (whitened) from the fit: a bounded loss
+        still lets gross outliers pull with constant force; cutting them restores the
+        Gaussian-noise optimum (for Gaussian data nothing is cut: P(|z| > 5) ~ 6e-7)."""
+        rs, rp, _ = self.blocks(x, corners=False)
+        for grp, r in ((self.scan, rs), (self.stripe, rp)):
+            grp.set_mask(np.ones(len(r), bool))
+            for _ in range(2):  # the kept set changes the group moments: settle it
+                grp.set_mask(np.abs(grp.whiten(r)) <= REJECT_SIGMAS)
+
+    def blocks(self, x: np.ndarray, corners: bool = True
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Raw residuals: scan (mm), stripe (px), corners (px, x and y interleaved)."""
+        d = self.data
+        x, rv = self.split(x)
+        k, a, R_ref, T_ref = _rig(x, self.base)
+        R, T = _poses(k, a, R_ref, T_ref, self.t)
+        bR, bT = _boards(x, self.base)
+        n = bR[:, :, 2]
+        dd = np.einsum("ij,ij->i", n, bT)
+        # scan points (ranges corrected by the ranging model) in the camera frame, eq. (28),
+        # against their board's plane, eq. (3)
+        p, b = d.scan_pos, d.scan_board
+        xy = self.scan_xy(rv)
+        X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
+        r_scan = np.einsum("ij,ij->i", X, n[b]) - dd[b]
+        # stripe centres back-projected onto their board (eq. 5), against the laser plane
+        p, b = d.stripe_pos, d.stripe_board
+        ray = d.stripe_rays
+        P = ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]
+        z = R[p, :, 2]
+        r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.scale_px
+        r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
+        return r_scan, r_stripe, r_corner
+
+    def scan_xy(self, rv: np.ndarray) -> np.ndarray:
+        """Scan points with ranges corrected: ``(rho - offset - dark_extra * dark) u``."""
+        if not np.any(rv):
+            return self.data.scan_xy
+        return self.data.scan_xy - (rv[0] + rv[1] * self.dark)[:, None] * self.scan_u
+
+    def jacobian(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
+        """Jacobian of :meth:`normalised` wrt the full parameters (rig 10 + boards 12).
+
+        Chain rule: the residuals are linear in each position's pose columns and
+        in each board's plane (normal, d), which depend on the parameters through
+        small functions differentiated numerically (central differences).
+        Corners: central differences.
+        """
+        d = self.data
+        n_par = len(x)
+        x, rv = self.split(x)
+        n_main = len(x)  # rig (+ boards); the ranging columns follow
+        k, a, R_ref, T_ref = _rig(x, self.base)
+        R, T = _poses(k, a, R_ref, T_ref, self.t)
+        bR, bT = _boards(x, self.base)
+        nb = bR[:, :, 2]
+        db = np.einsum("ij,ij->i", nb, bT)
+        # d (pose columns x, y, z and T at every position) / d rig parameters: (N, 12, 10)
+        h = _STEPS[:N_RIG]
+        G = np.zeros((len(self.t), 12, N_RIG))
+        for j in range(N_RIG):
+            dx = np.zeros(n_main)
+            dx[j] = h[j]
+            Rp, Tp = _poses(*_rig(x + dx, self.base), self.t)
+            Rm, Tm = _poses(*_rig(x - dx, self.base), self.t)
+            G[:, :, j] = (np.concatenate([Rp.transpose(0, 2, 1).reshape(-1, 9), Tp], 1)
+                          - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
+        # d (normal, d) of both boards / d board parameters: (2, 4, 6)
+        Gb = np.zeros((2, 4, N_BOARD))
+        if n_main > N_RIG:
+            for j in range(N_BOARD):
+                for b in range(2):
+                    dx = np.zeros(n_main)
+                    i = N_RIG + b * N_BOARD + j
+                    dx[i] = _STEPS[i]
+                    Rp, Tp = _boards(x + dx, self.base)
+                    Rm, Tm = _boards(x - dx, self.base)
+                    fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
+                    fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
+                    Gb[b, :, j] = (fp - fm) / (2 * _STEPS[i])
+        blocks = []
+        # scan: r = n_b . (R_x x + R_y y + T) - d_b, (x, y) = (rho - offset - extra dark) u
+        p, b = d.scan_pos, d.scan_board
+        xy = self.scan_xy(rv)
+        xs, ys = xy[:, :1], xy[:, 1:]
+        n = nb[b]
+        dr = np.concatenate([n * xs, n * ys, np.zeros((len(p), 3)), n], 1)  # wrt [Rx Ry Rz T]
+        Js = np.zeros((len(p), n_par))
+        Js[:, :N_RIG] = _rows_times(dr, G, p)
+        if self.n_ranging:
+            u = self.scan_u
+            du = -np.einsum("ij,ij->i", n, R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:])
+            Js[:, n_main] = du
+            if self.n_ranging > 1:
+                Js[:, n_main + 1] = du * self.dark
+        if n_main > N_RIG:
+            X = R[p, :, 0] * xs + R[p, :, 1] * ys + T[p]
+            drb = np.concatenate([X, -np.ones((len(p), 1))], 1)  # wrt [n, d]
+            for bb in range(2):
+                m = b == bb
+                c = N_RIG + bb * N_BOARD
+                Js[m, c:c + N_BOARD] = _mm(drb[m], Gb[bb])
+        blocks.append(self.scan.whiten_columns(Js) * self.scan.w[:, None])
+        # stripe: r = s (P - T) . z,  P = ray d_b / (ray . n_b)
+        p, b = d.stripe_pos, d.stripe_board
+        ray, s = d.stripe_rays, self.scale_px[:, None]
+        rn = np.einsum("ij,ij->i", ray, nb[b])[:, None]
+        P = ray * (db[b][:, None] / rn)
+        z = R[p, :, 2]
+        dr = np.concatenate([np.zeros((len(p), 6)), (P - T[p]) * s, -z * s], 1)
+        Jp = np.zeros((len(p), n_par))
+        Jp[:, :N_RIG] = _rows_times(dr, G, p)
+        if n_main > N_RIG:
+            zr = np.einsum("ij,ij->i", z, ray)[:, None]
+            drb = np.concatenate([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn], 1)
+            for bb in range(2):
+                m = b == bb
+                c = N_RIG + bb * N_BOARD
+                Jp[m, c:c + N_BOARD] = _mm(drb[m], Gb[bb])
+        blocks.append(self.stripe.whiten_columns(Jp) * self.stripe.w[:, None])
+        if self.n_ranging:  # prior pseudo-residuals
+            Jr = np.zeros((self.n_ranging, n_par))
+            Jr[:, n_main:] = np.diag(1 / self.prior_sigma[:self.n_ranging])
+            blocks.append(Jr)
+        for j in self.frozen:  # held terms: no column (the step leaves them)
+            for blk in blocks:
+                blk[:, n_main + j] = 0.0
+        if use_corners:
+            m = len(self.corner_residuals(bR, bT))
+            Jc = np.zeros((m, n_par))
+            for i in range(N_RIG, n_main):
+                dx = np.zeros(n_main)
+                dx[i] = _STEPS[i]
+                Jc[:, i] = (self.corner_residuals(*_boards(x + dx, self.base))
+                            - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
+            blocks.append(Jc / self.sigma_corner)
+        return np.vstack(blocks)
+
+    def corner_residuals(self, bR: np.ndarray, bT: np.ndarray) -> np.ndarray:
+        d = self.data
+        if d.corners_px is None or d.object_points is None:
+            return np.zeros(0)
+        out = []
+        K, dist = np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float)
+        for j in range(2):
+            rvec = cv2.Rodrigues(bR[j])[0]
+            proj, _ = cv2.projectPoints(d.object_points.reshape(-1, 1, 3), rvec, bT[j], K, dist)
+            out.append((proj.reshape(-1, 2) - d.corners_px[j]).ravel())
+        return np.concatenate(out)
+
+    def normalised(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
+        r = self.blocks(x, corners=use_corners)
+        parts = [self.scan.whiten(r[0]) * self.scan.w, self.stripe.whiten(r[1]) * self.stripe.w,
+                 self.prior_residuals(x)]
+        if use_corners:
+            parts.append(r[2] / self.sigma_corner)
+        return np.concatenate(parts)
+
+    def set_stripe_scale(self, x: np.ndarray) -> None:
+        """Pixels of stripe displacement (perpendicular to the imaged stripe) per mm of laser offset."""
+        d = self.data
+        if len(d.stripe_px) == 0:
+            return
+        x, _ = self.split(x)
+        k, a, R_ref, T_ref = _rig(x, self.base)
+        R, _ = _poses(k, a, R_ref, T_ref, self.t)
+        bR, bT = _boards(x, self.base)
+        n = bR[:, :, 2][d.stripe_board]
+        dd = np.einsum("ij,ij->i", bR[:, :, 2], bT)[d.stripe_board]
+        ray = d.stripe_rays
+        P = ray * (dd / np.einsum("ij,ij->i", ray, n))[:, None]
+        zL = R[d.stripe_pos, :, 2]
+        line = unit(np.cross(n, zL))  # stripe direction on the board
+        u = unit(np.cross(n, line))  # in the board, perpendicular to the stripe
+        # d pixel / d point through the lens model: cv2.projectPoints' Jacobian wrt the
+        # translation (columns 3-5) is exactly that with a zero rotation
+        _, Jt = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                  np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float))
+        Jt = Jt[:, 3:6].reshape(-1, 2, 3)
+        pu = np.einsum("mij,mj->mi", Jt, u)
+        pl = unit(np.einsum("mij,mj->mi", Jt, line))
+        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
+        du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
+        self.scale_px = perp / np.maximum(du, 1e-9)
+
+
+def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Row ``m`` of the result is ``dr[m] @ G[p[m]]``: (M, k) x (N, k, n) -> (M, n).
+
+    Rows sorted by position (as :func:`build_joint_data` makes them) take one small
+    product per position instead of gathering an (M, k, n) copy of ``G``.
+    """
+    if len(p) == 0 or np.any(p[1:] < p[:-1]):
+        return np.einsum("mi,mij->mj", dr, G[p])
+    out = np.empty((len(p), G.shape[2]))
+    cuts = np.searchsorted(p, np.arange(G.shape[0] + 1))
+    for i in range(G.shape[0]):
+        a, b = cuts[i], cuts[i + 1]
+        if b > a:
+            out[a:b] = np.einsum("mi,ij->mj", dr[a:b], G[i])
+    return out
