@@ -44,6 +44,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--square-mm", type=float, required=True)
     s.add_argument("-o", "--out", type=Path, default=None, help="write camera.json here")
 
+    s = sub.add_parser("laser-plane", help="the plane of a line laser from photos of it on a "
+                                           "flat chessboard")
+    s.add_argument("photos", type=Path, help="folder of lights-on photos of the laser on the board")
+    s.add_argument("--pattern", type=_pattern, required=True, help="inner corners, e.g. 8x5 (or 5x8)")
+    s.add_argument("--square-mm", type=float, required=True)
+    s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
+    s.add_argument("--out", type=Path, required=True, help="plane.json to write")
+    s.add_argument("--laser-colour", default="auto",
+                   choices=["auto", "red", "green", "blue", "gray"],
+                   help="the laser's colour (gray: a NIR laser); auto decides from the photos")
+
     s = sub.add_parser("calibrate", help="calibrate the LiDAR pose function from a dataset")
     s.add_argument("dataset", type=Path)
     s.add_argument("--out", type=Path, required=True, help="output folder for calibration.json")
@@ -108,6 +119,22 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_laser_plane(a: argparse.Namespace) -> int:
+    from .dataset import BoardSpec
+    from .laserplane import laser_plane, read_camera_json, write_laser_plane
+
+    res = laser_plane(a.photos, BoardSpec(a.pattern, a.square_mm), read_camera_json(a.camera),
+                      a.laser_colour)
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    n_used = sum(p.used for p in res.photos)
+    print(f"photos used {n_used} of {len(res.photos)}; normal "
+          f"{np.array2string(res.plane.normal, precision=6)}, d {res.plane.d:.3f} mm, "
+          f"rms {res.rms_mm:.3f} mm")
+    print(f"wrote {write_laser_plane(res, a.out)}")
+    return 0
+
+
 def _cmd_calibrate(a: argparse.Namespace) -> int:
     from .dataset import ImagePrefetch, load_dataset
 
@@ -166,6 +193,7 @@ def _cmd_report(a: argparse.Namespace) -> int:
 
 
 COMMANDS = {"simulate": _cmd_simulate, "intrinsics": _cmd_intrinsics, "calibrate": _cmd_calibrate,
+            "laser-plane": _cmd_laser_plane,
             "pose": _cmd_pose, "measure": _cmd_measure, "report": _cmd_report}
 
 
