@@ -158,8 +158,8 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         res.problem = f"laser stripe on the board: {problem}"
         return res
     res.centres_px = pts
-    res.board_plane = view.plane
-    res.points_mm = backproject_to_plane(camera, pts, view.plane)
+    res.board_plane = view.plane_pnp  # the ML pose: better than the homography's plane
+    res.points_mm = backproject_to_plane(camera, pts, view.plane_pnp)
     return res
 
 

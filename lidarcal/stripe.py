@@ -852,13 +852,16 @@ def reflectance_samples(camera: CameraModel, stripe_image: np.ndarray,
 
 
 def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
-                 boards: tuple[BoardView, BoardView], use_pnp: bool = False,
+                 boards: tuple[BoardView, BoardView], use_pnp: bool = True,
                  min_snr: float = 8.0, rho: float | None = None,
                  albedo_correction: bool = True, laser_colour: str = "auto") -> CameraLines:
     """Laser plane (eq. 4), E, l1, l2 and alpha from one stripe image (section 1.3).
 
-    ``use_pnp`` takes the board planes from ``cv2.solvePnP`` instead of the
-    homography (eqs. 2-3). With ``albedo_correction`` (and boards found by
+    ``use_pnp`` (default) takes the board planes from ``cv2.solvePnP`` (the
+    maximum-likelihood pose, started from the homography's) instead of the
+    homography alone (eqs. 2-3). Measured on the rendered wide rig (seed 37, true
+    camera): board-plane offset 0.01-0.04 mm with PnP against 0.14-0.32 mm with the
+    homography (normals 0.016-0.030 against 0.021-0.066 deg). With ``albedo_correction`` (and boards found by
     :func:`lidarcal.board.find_v_boards`, which carry blackness maps) the
     stripe centres are corrected for the squares' reflectance
     (:func:`stripe_centres`); ``rho`` is then the stripe's black/white
