@@ -27,13 +27,21 @@ from .board import board_view
 from .camera import backproject_to_plane, detect_chessboard
 from .dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
 from .geometry import Plane, fit_plane
-from .stripe import laser_response, quality_problem, stripe_centres
+from .stripe import (
+    SATURATED_DN,
+    detect_laser_colour,
+    laser_response,
+    quality_problem,
+    stripe_centres,
+)
 
 FORMAT = "lidarcal-laser-plane/1"
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
-#: a photo whose stripe points lie further than this many robust sigmas (and 3x the median
-#: photo's rms) from the common plane is an outlier (a wrong board pose, a reflection)
+#: a photo whose stripe points lie further (rms) than this many times the rms of the other
+#: photos about their own plane, and than MIN_OUTLIER_MM, is an outlier (a wrong board pose,
+#: a reflection)
 OUTLIER_K = 4.0
+MIN_OUTLIER_MM = 0.3
 MIN_PHOTOS = 2
 #: below this ratio of the 2nd to the 1st singular value of the points the stripes are
 #: (nearly) parallel and the plane is not determined
@@ -94,33 +102,49 @@ def read_camera_json(path: str | Path) -> CameraModel:
     return CameraModel(cam.K, cam.dist, cam.image_size, source=str(path), rms_px=raw.get("rms_px"))
 
 
-def _mask_laser(gray: np.ndarray, response: np.ndarray) -> np.ndarray:
-    """The gray photo with the laser painted out (inpainted from its surroundings), so the
-    chessboard detector and the corner refinement see the board alone."""
-    thr = max(25.0, 0.25 * float(np.percentile(response, 99.9)))
-    m = (response > thr).astype(np.uint8)
+def board_gray(image: np.ndarray, colour: str, response: np.ndarray) -> np.ndarray:
+    """The photo as the chessboard detector should see it: without the laser.
+
+    For a coloured laser, the mean of the two other channels (they see little of it);
+    for a gray (NIR, white) laser, luminance. What is left of the laser there (a
+    saturated core clips every channel) is painted out from its surroundings.
+    """
+    if image.ndim == 2:
+        gray = image
+    elif colour in ("red", "green", "blue"):
+        k = {"blue": 0, "green": 1, "red": 2}[colour]
+        o = [c for c in range(3) if c != k]
+        gray = ((image[..., o[0]].astype(np.uint16) + image[..., o[1]]) // 2).astype(np.uint8)
+    else:
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if colour in ("red", "green", "blue") and image.ndim == 3:
+        m = (image[..., :3].min(axis=2) >= SATURATED_DN) & (response > 0)
+    else:
+        thr = max(25.0, 0.25 * float(np.percentile(response, 99.9)))
+        m = response > thr
     if not m.any():
         return gray
-    m = cv2.dilate(m, np.ones((5, 5), np.uint8))
+    m = cv2.dilate(m.astype(np.uint8), np.ones((5, 5), np.uint8))
     return cv2.inpaint(gray, m, 3, cv2.INPAINT_TELEA)
 
 
-def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray
-               ) -> tuple[np.ndarray, BoardSpec] | None:
+def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
+               colour: str = "gray") -> tuple[np.ndarray, BoardSpec] | None:
     """Chessboard corners in a lights-on photo that also shows the laser, or None.
 
-    The laser is painted out first (it breaks the detector and pulls corners); the
-    pattern is tried as given and swapped (8x5 = 5x8). Returns the corners and the
-    board spec they match.
+    The detector and the corner refinement see the photo without the laser
+    (:func:`board_gray`; it breaks the detector and pulls corners); the pattern is
+    tried as given and swapped (8x5 = 5x8). Returns the corners and the board spec
+    they match.
     """
-    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    clean = _mask_laser(gray, response)
+    clean = board_gray(image, colour, response)
     c, r = board.inner_corners
     for spec in (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,):
-        for img in (clean, gray):
-            corners = detect_chessboard(img, spec.pattern_size)
-            if corners is not None:
-                return corners, spec
+        corners = detect_chessboard(clean, spec.pattern_size)
+        if corners is None:
+            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=True)
+        if corners is not None:
+            return corners, spec
     return None
 
 
@@ -136,8 +160,9 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         res.problem = (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
                        f"{camera.image_size[0]}x{camera.image_size[1]}")
         return res
-    response = laser_response(img, laser_colour)
-    found = find_board(img, board, response)
+    colour = detect_laser_colour(img) if laser_colour == "auto" else laser_colour
+    response = laser_response(img, colour)
+    found = find_board(img, board, response, colour)
     if found is None:
         res.problem = (f"the {board.inner_corners[0]}x{board.inner_corners[1]} chessboard "
                        "was not found")
@@ -163,6 +188,10 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
     return res
 
 
+def _rms_to_plane(photo: PhotoResult, plane: Plane) -> float:
+    return float(np.sqrt(np.mean(plane.distance(photo.points_mm) ** 2)))
+
+
 def _oriented(plane: Plane) -> Plane:
     return plane if plane.d >= 0 else Plane(-plane.normal, -plane.d)
 
@@ -171,29 +200,32 @@ def fit_laser_plane(photos: list[PhotoResult], n_boot: int = 200, seed: int = 0
                     ) -> tuple[Plane, float, float, float, list[str]]:
     """Eq. (4) by total least squares over every used photo's 3D stripe points, robustly.
 
-    Each photo's stripe is one line; a photo whose points lie far off the plane of the
-    others (rms distance above ``OUTLIER_K`` robust sigmas of the photos' rms and 3x
-    their median) is dropped and the plane refitted. Each photo weighs by its points.
+    Each photo's stripe is one line; leaving each photo out in turn, the one whose
+    removal fits the others best is dropped when its points lie further (rms) off the
+    others' plane than ``OUTLIER_K`` times their own rms and ``MIN_OUTLIER_MM``; then
+    again on the rest. Each photo weighs by its points.
     Sigma: bootstrap over the photos (``n_boot`` resamples): the rms angle of the
     resampled normals to the estimate, and the std of ``d`` (mm).
     Returns (plane, rms_mm, sigma_normal_deg, sigma_d_mm, warnings).
     """
     warnings: list[str] = []
     used = [p for p in photos if p.used]
-    for _ in range(3):
-        if len(used) < MIN_PHOTOS:
+    while len(used) > MIN_PHOTOS + 1:
+        # leave one out: the photo whose removal fits the rest best is the suspect; it is an
+        # outlier when its stripe lies far off the plane of the others
+        loo, rest = [], []
+        for p in used:
+            others = [q for q in used if q is not p]
+            pl = fit_plane(np.vstack([q.points_mm for q in others]))
+            loo.append(_rms_to_plane(p, pl))
+            rest.append(float(np.sqrt(np.mean(pl.distance(np.vstack([q.points_mm
+                                                                      for q in others])) ** 2))))
+        k = int(np.argmin(rest))
+        if loo[k] <= max(OUTLIER_K * rest[k], MIN_OUTLIER_MM):
             break
-        plane = _oriented(fit_plane(np.vstack([p.points_mm for p in used])))
-        rms = np.array([np.sqrt(np.mean(plane.distance(p.points_mm) ** 2)) for p in used])
-        med = float(np.median(rms))
-        mad = 1.4826 * float(np.median(np.abs(rms - med)))
-        bad = [p for p, r in zip(used, rms) if r > max(med + OUTLIER_K * mad, 3.0 * med, 0.05)]
-        if not bad or len(used) - len(bad) < MIN_PHOTOS:
-            break
-        for p in bad:
-            r = float(np.sqrt(np.mean(plane.distance(p.points_mm) ** 2)))
-            p.problem = (f"its stripe lies {r:.2f} mm rms off the plane of the other photos "
-                         f"(median {med:.2f} mm): a wrong board pose or a reflection")
+        used[k].problem = (f"its stripe lies {loo[k]:.2f} mm rms off the plane of the other "
+                           f"photos (their rms {rest[k]:.2f} mm): a wrong board pose or a "
+                           "reflection")
         used = [p for p in used if p.used]
     if len(used) < MIN_PHOTOS:
         raise ValueError(f"the laser stripe was measured on {len(used)} photo(s), need at least "

@@ -75,6 +75,7 @@ def sample_laser_plane(rng: np.random.Generator, cfg: LaserPhotoConfig) -> tuple
     a = np.radians(rng.uniform(-60, 60))
     n = unit(np.array([np.cos(a), np.sin(a), rng.uniform(-0.3, 0.3)]))
     plane = Plane.from_normal_point(n, P0)
+    n = plane.normal  # (its sign convention: d >= 0)
     X0 = np.array([-160.0 * np.sign(n[0] + 1e-9), 60.0, 0.0])
     E = X0 - plane.distance(X0[None])[0] * n
     x = unit((P0 - E) - ((P0 - E) @ n) * n)
