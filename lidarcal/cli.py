@@ -141,7 +141,8 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     ds = load_dataset(a.dataset)
     skip = set(a.skip)
     # decode the stripe images in a background thread while the heavier modules import
-    images = ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size)
+    images = ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size,
+                           laser_colour=ds.lidar.laser_colour)
     from .pipeline import calibrate, write_calibration
 
     res = calibrate(ds, skip=a.skip, skip_failed=a.skip_failed,

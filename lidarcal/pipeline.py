@@ -129,7 +129,7 @@ def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView,
 
     ``rho`` is the stripe's black/white reflectance ratio on the boards (one per dataset).
     """
-    img = _stripe_image(pos, camera)
+    img = _stripe_image(pos, camera, lidar.laser_colour)
     try:
         cl = camera_lines(camera, img, boards, rho=rho)
     except ValueError as e:
@@ -169,11 +169,12 @@ def _solve_safe(args) -> PositionResult | DatasetError:
 _WORKER: dict = {}
 
 
-def _stripe_image(pos: Position, camera: CameraModel) -> np.ndarray:
+def _stripe_image(pos: Position, camera: CameraModel, laser_colour: str = "auto") -> np.ndarray:
     """The stripe image of ``pos``: prefetched when available, else read now."""
     pre = _WORKER.get("images")
     img = None if pre is None else pre.get(pos)
-    return read_stripe_image(pos.stripe_image, camera.image_size) if img is None else img
+    return read_stripe_image(pos.stripe_image, camera.image_size, laser_colour) \
+        if img is None else img
 
 
 def _fork_context():
@@ -197,7 +198,7 @@ def _solve_task(task: tuple[Position, float | None]) -> PositionResult | Dataset
 def _rho_samples_task(pos: Position) -> list:
     """Reflectance samples of one stripe image (for :func:`dataset_reflectance_ratio`)."""
     try:
-        img = _stripe_image(pos, _WORKER["camera"])
+        img = _stripe_image(pos, _WORKER["camera"], _WORKER["lidar"].laser_colour)
     except DatasetError:
         return []  # unreadable: left to the per-position step, which reports it
     return reflectance_samples(_WORKER["camera"], img, _WORKER["boards"])

@@ -29,6 +29,9 @@ LASER_COLOURS = ("auto", "red", "green", "blue", "gray")
 _CHANNEL = {"blue": 0, "green": 1, "red": 2}  # OpenCV's BGR order
 #: ``auto``: a colour whose excess peaks below this (DN) is not a coloured laser -> "gray".
 MIN_COLOUR_EXCESS_DN = 25.0
+#: ``auto``: a frame whose median brightest channel is below this (DN) is a dark frame (the
+#: V rig's stripe images): the brightest channel keeps the laser's full signal there
+DARK_FRAME_DN = 40.0
 #: a laser channel at or above this (DN) is saturated (its core is filled, see laser_response)
 SATURATED_DN = 250
 
@@ -70,7 +73,8 @@ def laser_response(image: np.ndarray, colour: str = "auto",
     ``colour`` (``lidar.laser_colour``): "gray" takes the brightest channel (a dark
     frame, or a NIR laser); "red", "green", "blue" the colour excess ``L - (O1 + O2) / 2``,
     in which lit white squares are ~0 while the laser is not; "auto" decides by
-    :func:`detect_laser_colour`. A saturated laser core turns white (all channels
+    :func:`detect_laser_colour`, except on a dark frame (median below ``DARK_FRAME_DN``),
+    which is read by its brightest channel. A saturated laser core turns white (all channels
     clip), which the excess would hollow out: where the laser channel is saturated the
     response is the largest excess within a few pixels (the stripe's own flanks), so
     the core is a flat top, symmetric about the centre. ``reference``: a lights-on
@@ -82,7 +86,9 @@ def laser_response(image: np.ndarray, colour: str = "auto",
     if colour not in LASER_COLOURS:
         raise ValueError(f"laser colour must be one of {', '.join(LASER_COLOURS)}, got {colour!r}")
     if colour == "auto":
-        colour = detect_laser_colour(img, reference)
+        dark = img.ndim == 3 and reference is None and \
+            float(np.median(img[::4, ::4, :3].max(axis=2))) < DARK_FRAME_DN
+        colour = "gray" if dark else detect_laser_colour(img, reference)
     if img.ndim == 2 or colour == "gray":
         resp = img.astype(np.float32) if img.ndim == 2 else \
             img[..., :3].max(axis=2).astype(np.float32)
