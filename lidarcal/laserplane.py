@@ -117,11 +117,11 @@ def board_gray(image: np.ndarray, colour: str, response: np.ndarray) -> np.ndarr
         gray = ((image[..., o[0]].astype(np.uint16) + image[..., o[1]]) // 2).astype(np.uint8)
     else:
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    thr = max(25.0, 0.25 * float(np.percentile(response, 99.9)))
+    m = response > thr
     if colour in ("red", "green", "blue") and image.ndim == 3:
-        m = (image[..., :3].min(axis=2) >= SATURATED_DN) & (response > 0)
-    else:
-        thr = max(25.0, 0.25 * float(np.percentile(response, 99.9)))
-        m = response > thr
+        # only the laser's white (clipped) core: overexposed white squares stay
+        m &= image[..., :3].min(axis=2) >= SATURATED_DN
     if not m.any():
         return gray
     m = cv2.dilate(m.astype(np.uint8), np.ones((5, 5), np.uint8))
