@@ -348,8 +348,11 @@ def view_reprojection_sq(camera: CameraModel, img: np.ndarray, obj: np.ndarray) 
     o = np.asarray(obj, np.float64).reshape(-1, 3)
     p = np.asarray(img, np.float64).reshape(-1, 2)
     ok, rvec, tvec = cv2.solvePnP(o, p, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    ok, rvec, tvec = cv2.solvePnP(o, p, K, dist, rvec, tvec, useExtrinsicGuess=True,
-                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if ok:
+        ok, rvec, tvec = cv2.solvePnP(o, p, K, dist, rvec, tvec, useExtrinsicGuess=True,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise ValueError("solvePnP failed on a held-out view")
     proj, _ = cv2.projectPoints(o, rvec, tvec, K, dist)
     return float(np.sum((proj.reshape(-1, 2) - p) ** 2))
 

@@ -21,6 +21,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .laser_colour import LASER_COLOURS
+
 DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
 MEASUREMENTS_FORMAT = "lidarcal-measurements/1"
@@ -379,10 +381,6 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
     return img
 
 
-#: ``lidar.laser_colour`` values (the same as :data:`lidarcal.stripe.LASER_COLOURS`)
-LASER_COLOURS = ("auto", "red", "green", "blue", "gray")
-
-
 def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None,
                       laser_colour: str = "auto") -> np.ndarray:
     """A stripe image as uint8: gray images as they are; colour images by
@@ -396,7 +394,7 @@ def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None,
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None or img.ndim == 2 or img.dtype != np.uint8:
         return read_image(path, image_size, colour="max")
-    from .stripe import laser_response  # noqa: PLC0415 (cv2-only module, imported on demand)
+    from .stripe import laser_response
 
     out = laser_response(img[:, :, :3], laser_colour)
     if image_size is not None and (out.shape[1], out.shape[0]) != tuple(image_size):

@@ -27,13 +27,9 @@ from .board import board_view
 from .camera import backproject_to_plane, detect_chessboard
 from .dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
 from .geometry import Plane, fit_plane
-from .stripe import (
-    SATURATED_DN,
-    detect_laser_colour,
-    laser_response,
-    quality_problem,
-    stripe_centres,
-)
+from .laser_colour import SATURATED_DN, detect_laser_colour, laser_response
+from .stripe import stripe_centres
+from .stripe_quality import quality_problem
 
 FORMAT = "lidarcal-laser-plane/1"
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
@@ -77,7 +73,7 @@ class LaserPlaneResult:
         return {"format": FORMAT, "normal": self.plane.normal.tolist(), "d_mm": float(self.plane.d),
                 "rms_mm": _num(self.rms_mm),
                 "sigma": {"normal_deg": _num(self.sigma_normal_deg), "d_mm": _num(self.sigma_d_mm)},
-                "images": [{"name": p.name, "used": p.used, "centres": int(len(p.centres_px)),
+                "images": [{"name": p.name, "used": p.used, "centres": len(p.centres_px),
                             "rms_px": _num(p.rms_px)} for p in self.photos],
                 "warnings": list(self.warnings)}
 
@@ -290,3 +286,28 @@ def write_laser_plane(result: LaserPlaneResult, path: str | Path) -> Path:
     path = Path(path)
     write_json_atomic(path, result.to_dict())
     return path
+
+
+def residual_figure(result: LaserPlaneResult):
+    """A matplotlib Figure for a report: each used photo's stripe points, their distance to
+    the fitted plane (mm) along the stripe, one colour per photo; unused photos listed."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.2), layout="constrained")
+    for p in result.photos:
+        if not p.used:
+            continue
+        P = p.points_mm
+        t = (P - P.mean(0)) @ np.linalg.svd(P - P.mean(0), full_matrices=False)[2][0]
+        o = np.argsort(t)
+        ax.plot(t[o], result.plane.distance(P)[o], lw=0.8, label=p.name)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("along the stripe (mm)")
+    ax.set_ylabel("distance to the laser plane (mm)")
+    unused = [p.name for p in result.photos if not p.used]
+    ax.set_title(f"laser plane: rms {result.rms_mm:.3f} mm, {len(result.photos) - len(unused)} "
+                 f"photos used" + (f"; not used: {', '.join(unused)}" if unused else ""),
+                 fontsize=9)
+    if len(result.photos) <= 16:
+        ax.legend(fontsize=6, ncol=2)
+    return fig

@@ -21,94 +21,20 @@ from .board import BoardView
 from .camera import backproject_to_plane, undistort_pixels
 from .dataset import CameraModel
 from .geometry import Plane, fit_plane, fit_plane_algebraic, intersect_planes, unit
+from .laser_colour import (  # noqa: F401  (re-exported: the stripe's public API)
+    LASER_COLOURS,
+    SATURATED_DN,
+    detect_laser_colour,
+    laser_response,
+)
+from .stripe_quality import (  # noqa: F401  (re-exported)
+    DEFAULT_GATES,
+    StripeGates,
+    quality_problem,
+    stripe_quality,
+)
 
 MAD_TO_SIGMA = 1.4826
-
-#: ``lidar.laser_colour`` values: the laser's colour decides the image the stripe is found in.
-LASER_COLOURS = ("auto", "red", "green", "blue", "gray")
-_CHANNEL = {"blue": 0, "green": 1, "red": 2}  # OpenCV's BGR order
-#: ``auto``: a colour whose excess peaks below this (DN) is not a coloured laser -> "gray".
-MIN_COLOUR_EXCESS_DN = 25.0
-#: ``auto``: a frame whose median brightest channel is below this (DN) is a dark frame (the
-#: V rig's stripe images): the brightest channel keeps the laser's full signal there
-DARK_FRAME_DN = 40.0
-#: a laser channel at or above this (DN) is saturated (its core is filled, see laser_response)
-SATURATED_DN = 250
-
-
-def _colour_excess(img: np.ndarray, colour: str) -> np.ndarray:
-    """``L - (O1 + O2) / 2`` (float32) for the laser channel ``L`` and the two others."""
-    f = img[..., :3].astype(np.float32)
-    k = _CHANNEL[colour]
-    others = [c for c in range(3) if c != k]
-    return f[..., k] - 0.5 * (f[..., others[0]] + f[..., others[1]])
-
-
-def detect_laser_colour(image: np.ndarray, reference: np.ndarray | None = None) -> str:
-    """The laser's colour for ``lidar.laser_colour: auto``: "red", "green", "blue" or "gray".
-
-    A gray image is "gray". Otherwise each channel's excess over the other two
-    (:func:`_colour_excess`; of the difference to ``reference``, a lights-on image
-    without the laser, when given) is taken at its 99.95th percentile; the strongest
-    wins if it reaches ``MIN_COLOUR_EXCESS_DN``, else the laser is "gray" (white, or
-    a NIR laser that every channel sees alike).
-    """
-    img = np.asarray(image)
-    if img.ndim == 2 or img.shape[2] == 1:
-        return "gray"
-    f = img[..., :3].astype(np.float32)
-    if reference is not None and np.shape(reference)[:2] == img.shape[:2] \
-            and np.ndim(reference) == 3:
-        f = f - np.asarray(reference)[..., :3].astype(np.float32)
-    sub = f[::2, ::2]
-    score = {c: float(np.percentile(_colour_excess(sub, c), 99.95)) for c in _CHANNEL}
-    best = max(score, key=score.get)
-    return best if score[best] >= MIN_COLOUR_EXCESS_DN else "gray"
-
-
-def laser_response(image: np.ndarray, colour: str = "auto",
-                   reference: np.ndarray | None = None) -> np.ndarray:
-    """The single-channel uint8 image the stripe is found in (section 1.3, real photos).
-
-    ``colour`` (``lidar.laser_colour``): "gray" takes the brightest channel (a dark
-    frame, or a NIR laser); "red", "green", "blue" the colour excess ``L - (O1 + O2) / 2``,
-    in which lit white squares are ~0 while the laser is not; "auto" decides by
-    :func:`detect_laser_colour`, except on a dark frame (median below ``DARK_FRAME_DN``),
-    which is read by its brightest channel. A saturated laser core turns white (all channels
-    clip), which the excess would hollow out: where the laser channel is saturated the
-    response is the largest excess within a few pixels (the stripe's own flanks), so
-    the core is a flat top, symmetric about the centre. ``reference``: a lights-on
-    image of the same view without the laser (``board.png``); its response is
-    subtracted (stripe minus board) when ``image`` is itself lit (its median at least
-    half the reference's), removing what the board shows without the laser.
-    """
-    img = np.asarray(image)
-    if colour not in LASER_COLOURS:
-        raise ValueError(f"laser colour must be one of {', '.join(LASER_COLOURS)}, got {colour!r}")
-    if colour == "auto":
-        dark = img.ndim == 3 and reference is None and \
-            float(np.median(img[::4, ::4, :3].max(axis=2))) < DARK_FRAME_DN
-        colour = "gray" if dark else detect_laser_colour(img, reference)
-    if img.ndim == 2 or colour == "gray":
-        resp = img.astype(np.float32) if img.ndim == 2 else \
-            img[..., :3].max(axis=2).astype(np.float32)
-        ref = None if reference is None else laser_response(reference, "gray")
-    else:
-        resp = _colour_excess(img, colour)
-        sat = img[..., _CHANNEL[colour]] >= SATURATED_DN
-        if sat.any():
-            r = 7  # fills cores up to ~15 px wide; far from a stripe saturated squares stay 0
-            filled = cv2.dilate(resp, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1,) * 2))
-            resp = np.where(sat, np.maximum(resp, filled), resp)
-        ref = None
-        if reference is not None and np.ndim(reference) == 3:
-            ref = np.clip(_colour_excess(np.asarray(reference), colour), 0, 255)
-    if ref is not None and ref.shape == resp.shape:
-        lit = np.median(resp[::4, ::4]) >= 0.5 * max(float(np.median(ref[::4, ::4])), 1.0)
-        if lit:
-            resp = resp - ref
-    return np.clip(np.rint(resp), 0, 255).astype(np.uint8)
-
 
 def _hist_percentile(hist: np.ndarray, q: float) -> float:
     """``np.percentile`` (linear interpolation) of the integers ``0..len(hist)-1`` counted in
@@ -367,84 +293,6 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
             "fit_rms_px": fit_rms, "n_rejected": int((~keep).sum()), "samples": samples,
             "quality": quality, "problem": quality_problem(quality)}
     return pts[keep], info
-
-
-@dataclass(frozen=True)
-class StripeGates:
-    """Per-image quality gates of a stripe (section 1.3 on real images).
-
-    The centres must form one smooth curve: their RMS about it at most
-    ``max_rms_width`` times the stripe width (FWHM) or ``min_rms_px``, whichever is
-    larger; at least ``min_inlier_share`` of the columns' centres on it; crossing at
-    least ``min_coverage`` of the board along the stripe; a median peak of at least
-    ``min_median_snr`` noise sigmas; at least ``min_points`` centres.
-    """
-
-    max_rms_width: float = 0.25
-    min_rms_px: float = 0.5
-    min_inlier_share: float = 0.6
-    min_coverage: float = 0.3
-    min_median_snr: float = 10.0
-    min_points: int = 10
-
-
-DEFAULT_GATES = StripeGates()
-
-
-def stripe_quality(pts: np.ndarray, n_rejected: int, fit_rms_px: float, width_px: float,
-                   snr: np.ndarray, mask: np.ndarray, origin: tuple[int, int] = (0, 0)
-                   ) -> dict:
-    """The numbers the gates of :class:`StripeGates` judge one stripe by.
-
-    ``coverage``: the share of the mask crossed along the stripe: the mask's pixels
-    within 2 px of the centres' line, binned every 4 px along it, and the share of
-    those bins that hold a centre. ``mask`` is given with its ``origin`` (x0, y0) in
-    the image.
-    """
-    n = len(pts)
-    q = {"points": n, "rms_px": float(fit_rms_px), "width_px": float(width_px),
-         "inlier_share": n / max(n + n_rejected, 1),
-         "median_snr": float(np.median(snr)) if n else 0.0, "coverage": 0.0}
-    if n < 3:
-        return q
-    c = pts.mean(0)
-    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-    t_dir, n_dir = vt[0], vt[1]
-    ys, xs = np.nonzero(mask)
-    P = np.column_stack([xs + origin[0], ys + origin[1]]).astype(float) - c
-    band = np.abs(P @ n_dir) <= 2.0
-    if not band.any():
-        return q
-    tm = P[band] @ t_dir
-    lo = tm.min()
-    nb = int((tm.max() - lo) // 4) + 1
-    board_bins = np.zeros(nb, bool)
-    board_bins[((tm - lo) // 4).astype(int)] = True
-    tc = ((pts - c) @ t_dir - lo) // 4
-    tc = tc[(tc >= 0) & (tc < nb)].astype(int)
-    hit = np.zeros(nb, bool)
-    hit[tc] = True
-    q["coverage"] = float((hit & board_bins).sum() / max(board_bins.sum(), 1))
-    return q
-
-
-def quality_problem(q: dict, gates: StripeGates = DEFAULT_GATES) -> str | None:
-    """Why a stripe fails :class:`StripeGates` (one phrase), or None when it passes."""
-    if q["points"] < gates.min_points:
-        return f"{q['points']} stripe centres found, need at least {gates.min_points}"
-    limit = max(gates.max_rms_width * q["width_px"], gates.min_rms_px)
-    if not np.isfinite(q["rms_px"]) or q["rms_px"] > limit:
-        return (f"the stripe centres do not form one smooth curve (rms {q['rms_px']:.2f} px, "
-                f"limit {limit:.2f} px)")
-    if q["inlier_share"] < gates.min_inlier_share:
-        return (f"only {100 * q['inlier_share']:.0f} % of the stripe centres lie on one curve "
-                f"(need {100 * gates.min_inlier_share:.0f} %)")
-    if q["coverage"] < gates.min_coverage:
-        return (f"the stripe crosses only {100 * q['coverage']:.0f} % of the board "
-                f"(need {100 * gates.min_coverage:.0f} %)")
-    if q["median_snr"] < gates.min_median_snr:
-        return f"the stripe is faint (median peak {q['median_snr']:.1f} noise sigmas)"
-    return None
 
 
 def _row_median(a: np.ndarray) -> np.ndarray:

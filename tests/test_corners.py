@@ -65,6 +65,7 @@ def test_fiducial_rings_do_not_drag_corners() -> None:
     of OpenCV's SB corners, whose own accuracy is ~0.1-0.5 px)."""
     g = cv2.imread(str(TAPAS / "00.png"), cv2.IMREAD_GRAYSCALE)
     ok, sb = cv2.findChessboardCornersSB(g, (8, 5))
+    assert ok
     sb = sb.reshape(-1, 2)
     half = np.maximum(np.floor(0.3 * local_square_px(sb, (8, 5))), 2).astype(int)
     raw = _subpix(g, sb, half)

@@ -153,7 +153,7 @@ def test_fit_drops_a_photo_off_the_plane(seed) -> None:
                               name=f"{k}.png"))
     bad = photos[4]
     bad.points_mm = bad.points_mm + 4.0 * truth.normal  # a wrong board pose: 4 mm off
-    plane, rms, s_ang, s_d, _ = fit_laser_plane(photos)
+    plane, rms, s_ang, _, _ = fit_laser_plane(photos)
     assert not bad.used and "off the plane" in bad.problem
     assert all(p.used for p in photos if p is not bad)
     ang = np.degrees(np.arccos(min(1.0, abs(plane.normal @ truth.normal))))
@@ -171,7 +171,7 @@ def test_parallel_stripes_do_not_determine_the_plane() -> None:
 
 def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "lidarcal", *args], capture_output=True,
-                          text=True, timeout=300)
+                          text=True, timeout=300, check=False)
 
 
 def test_cli_writes_the_plane(photos, tmp_path) -> None:
@@ -212,3 +212,15 @@ def test_too_few_usable_photos_names_the_folder(photos, tmp_path) -> None:
     with pytest.raises(DatasetError, match=r"one.*measured on 1 photo.*03.png"):
         laser_plane(one, BoardSpec(tuple(t["pattern"]), t["square_mm"]),
                     read_camera_json(photos / "camera.json"))
+
+
+def test_residual_figure(result) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from lidarcal.laserplane import residual_figure
+
+    fig = residual_figure(result)
+    lines = fig.axes[0].get_lines()
+    assert len(lines) == sum(p.used for p in result.photos) + 1  # + the zero line
+    assert "03.png" in fig.axes[0].get_title()

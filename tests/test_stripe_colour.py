@@ -27,7 +27,7 @@ def _lit_board(seed: int, slope: float, offset: float, peak: float = 600.0,
     board = np.where(((x // SQ) + (y // SQ)) % 2 == 0, white, 0.14 * white)
     board = cv2.GaussianBlur(board, (0, 0), 0.8)
     alb = board / white
-    f = lambda xx: offset + slope * (xx - W / 2)  # noqa: E731
+    f = lambda xx: offset + slope * (xx - W / 2)
     d = (y - f(x)) / np.sqrt(1 + slope**2)
     laser = peak * np.exp(-0.5 * (d / 1.5) ** 2) * (0.3 + 0.7 * alb)
     chans = [board + crosstalk * laser, board + crosstalk * laser, board + laser]

@@ -152,6 +152,8 @@ def render_photo(cfg: LaserPhotoConfig, K: np.ndarray, board: Rect, plane: Pose,
     img = np.clip(np.rint(np.stack(chans, axis=2)), 0, 255).astype(np.uint8)
     if cfg.jpeg_quality is not None:
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
+        if not ok:
+            raise OSError("cannot encode a JPEG")
         img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     return img
 
