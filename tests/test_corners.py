@@ -75,11 +75,12 @@ def test_fiducial_rings_do_not_drag_corners() -> None:
 
 
 def test_tapas_views_never_pass_dragged_corners() -> None:
-    """Every bundled real view: either no board, or corners that agree with their grid, and
-    with SB's corners except where SB's own corner disagrees with its grid (04.png: SB puts
-    the corner beside a fiducial ring on the ring's rim, 13 px from where its neighbours
-    and the re-refinement put it)."""
+    """Every bundled real view: either no board, or corners that agree with their grid and
+    with SB's corners, except at the four outer corners, which the fiducial rings partly
+    hide: there SB's corner may sit on a ring's rim (04.png: 13 px from where the
+    neighbours and the re-refinement put the corner, which is the visible one)."""
     found = 0
+    outer = {0, 7, 32, 39}
     for p in sorted(TAPAS.glob("*.png")):
         g = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         c = detect_chessboard(g, (8, 5))
@@ -88,8 +89,8 @@ def test_tapas_views_never_pass_dragged_corners() -> None:
             found += 1
             sb = sb.reshape(-1, 2).astype(float)
             assert not corner_outliers(c, (8, 5)).any(), p.name
-            far = np.linalg.norm(c - sb, axis=1) > 1.5
-            assert np.all(corner_outliers(sb, (8, 5))[far]), p.name
+            far = set(np.flatnonzero(np.linalg.norm(c - sb, axis=1) > 1.5).tolist())
+            assert far <= outer, p.name
     assert found >= 4
 
 
