@@ -379,7 +379,8 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
     """``calibration.json`` per the contract, plus optional extensions."""
     ds = res.dataset
     psi = {p.index: p.psi_deg for p in res.positions}
-    cam = res.camera.to_dict()
+    # calibrated from intrinsics/: with every view's reprojection RMS and the k3 choice
+    cam = res.intrinsics.to_dict() if res.intrinsics is not None else res.camera.to_dict()
     samples = []
     for p in res.positions:
         row = {"index": p.index, "psi_deg": p.psi_deg, **p.pose.to_dict(),
