@@ -98,7 +98,8 @@ def read_camera_json(path: str | Path) -> CameraModel:
     return CameraModel(cam.K, cam.dist, cam.image_size, source=str(path), rms_px=raw.get("rms_px"))
 
 
-def board_gray(image: np.ndarray, colour: str, response: np.ndarray) -> np.ndarray:
+def board_gray(image: np.ndarray, colour: str, response: np.ndarray,
+               paint: str = "laser") -> np.ndarray:
     """The photo as the chessboard detector should see it: without the laser.
 
     For a coloured laser, the mean of the two other channels (they see little of it);
@@ -114,10 +115,9 @@ def board_gray(image: np.ndarray, colour: str, response: np.ndarray) -> np.ndarr
     else:
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     thr = max(25.0, 0.25 * float(np.percentile(response, 99.9)))
-    m = response > thr
-    if colour in ("red", "green", "blue") and image.ndim == 3:
-        # only the laser's white (clipped) core: overexposed white squares stay
-        m &= image[..., :3].min(axis=2) >= SATURATED_DN
+    m = response > thr  # the laser where it is clear (overexposed white squares are not)
+    if paint == "core" and image.ndim == 3:
+        m &= image[..., :3].min(axis=2) >= SATURATED_DN  # only its white (clipped) core
     if not m.any():
         return gray
     m = cv2.dilate(m.astype(np.uint8), np.ones((5, 5), np.uint8))
@@ -129,16 +129,21 @@ def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
     """Chessboard corners in a lights-on photo that also shows the laser, or None.
 
     The detector and the corner refinement see the photo without the laser
-    (:func:`board_gray`; it breaks the detector and pulls corners); the pattern is
-    tried as given and swapped (8x5 = 5x8). Returns the corners and the board spec
+    (:func:`board_gray`; it breaks the detector and pulls corners): the laser painted
+    out, else only its clipped core; the pattern is tried as given and swapped (8x5 =
+    5x8); the detector's exhaustive mode last. Returns the corners and the board spec
     they match.
     """
-    clean = board_gray(image, colour, response)
     c, r = board.inner_corners
-    for spec in (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,):
-        corners = detect_chessboard(clean, spec.pattern_size)
-        if corners is None:
-            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=True)
+    specs = (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,)
+    for paint in ("laser", "core"):
+        clean = board_gray(image, colour, response, paint)
+        for spec in specs:
+            corners = detect_chessboard(clean, spec.pattern_size)
+            if corners is not None:
+                return corners, spec
+    for spec in specs:
+        corners = detect_chessboard(clean, spec.pattern_size, exhaustive=True)
         if corners is not None:
             return corners, spec
     return None
