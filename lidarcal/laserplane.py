@@ -39,6 +39,8 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 OUTLIER_K = 4.0
 MIN_OUTLIER_MM = 0.3
 MIN_PHOTOS = 2
+#: a board whose corners fit its pose worse than this (rms, px) is not used
+MAX_BOARD_RMS_PX = 1.0
 #: below this ratio of the 2nd to the 1st singular value of the points the stripes are
 #: (nearly) parallel and the plane is not determined
 MIN_SPREAD = 0.02
@@ -125,27 +127,22 @@ def board_gray(image: np.ndarray, colour: str, response: np.ndarray,
 
 
 def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
-               colour: str = "gray") -> tuple[np.ndarray, BoardSpec] | None:
+               colour: str = "gray", paint: str = "laser") -> tuple[np.ndarray, BoardSpec] | None:
     """Chessboard corners in a lights-on photo that also shows the laser, or None.
 
     The detector and the corner refinement see the photo without the laser
-    (:func:`board_gray`; it breaks the detector and pulls corners): the laser painted
-    out, else only its clipped core; the pattern is tried as given and swapped (8x5 =
-    5x8); the detector's exhaustive mode last. Returns the corners and the board spec
-    they match.
+    (:func:`board_gray` with ``paint``; it breaks the detector and pulls corners); the
+    pattern is tried as given and swapped (8x5 = 5x8), the detector's exhaustive mode
+    last. Returns the corners and the board spec they match.
     """
+    clean = board_gray(image, colour, response, paint)
     c, r = board.inner_corners
     specs = (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,)
-    for paint in ("laser", "core"):
-        clean = board_gray(image, colour, response, paint)
+    for exhaustive in (False, True):
         for spec in specs:
-            corners = detect_chessboard(clean, spec.pattern_size)
+            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive)
             if corners is not None:
                 return corners, spec
-    for spec in specs:
-        corners = detect_chessboard(clean, spec.pattern_size, exhaustive=True)
-        if corners is not None:
-            return corners, spec
     return None
 
 
@@ -163,14 +160,22 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         return res
     colour = detect_laser_colour(img) if laser_colour == "auto" else laser_colour
     response = laser_response(img, colour)
-    found = find_board(img, board, response, colour)
-    if found is None:
+    # only the laser's clipped core painted out first (corners under the stripe keep their
+    # own pixels), then the whole visible laser: the board pose that fits its corners best
+    view = None
+    for paint in ("core", "laser"):
+        found = find_board(img, board, response, colour, paint)
+        if found is not None:
+            v = board_view(camera, found[0], found[1])
+            if view is None or v.reprojection_rms_px[1] < view.reprojection_rms_px[1]:
+                view = v
+            if view.reprojection_rms_px[1] <= MAX_BOARD_RMS_PX / 2:
+                break
+    if view is None:
         res.problem = (f"the {board.inner_corners[0]}x{board.inner_corners[1]} chessboard "
                        "was not found")
         return res
-    corners, spec = found
-    view = board_view(camera, corners, spec)
-    if view.reprojection_rms_px[1] > 1.0:
+    if view.reprojection_rms_px[1] > MAX_BOARD_RMS_PX:
         res.problem = (f"the chessboard corners do not fit one board pose (reprojection "
                        f"{view.reprojection_rms_px[1]:.2f} px)")
         return res
