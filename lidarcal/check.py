@@ -144,34 +144,34 @@ def _thumbnail(image: np.ndarray, width: int = THUMB_WIDTH_PX) -> tuple[np.ndarr
 def _check_position(pos: Position, camera: CameraModel | None, boards, lidar, rho) -> PositionCheck:
     """Section 1's detections at one position (no fit of a pose): stripes, then the scan's V."""
     from .scan import split_v
-    from .stripe import MIN_STRIPE_CENTRES, board_stripe_centres, camera_lines_from_centres
+    from .stripe import board_stripe_centres, camera_lines_from_centres
 
     out = PositionCheck(pos.index, pos.psi_deg, pos.stripe_image, pos.scan)
     drop = f"; check this position or drop it with --skip {pos.index}"
     alpha = None
     try:
-        img = read_stripe_image(pos.stripe_image, None if camera is None else camera.image_size)
+        img = read_stripe_image(pos.stripe_image, None if camera is None else camera.image_size,
+                                lidar.laser_colour)
     except DatasetError as e:
         out.problems.append(str(e))
         img = None
     if img is not None:
         out.thumbnail, out.thumb_scale = _thumbnail(img)
     if img is not None and boards is not None:
-        centres, _ = board_stripe_centres(camera, img, boards, rho=rho)
+        centres, _, stripe_problems = board_stripe_centres(camera, img, boards, rho=rho)
         out.centres_px = (centres[0], centres[1])
         out.saturated_share = saturated_share(img, np.vstack(centres))
-        few = [(k, len(c)) for k, c in enumerate(centres) if len(c) < MIN_STRIPE_CENTRES]
-        for k, n in few:
-            out.problems.append(f"{pos.stripe_image}: board {k}: found {n} laser-stripe centres, "
-                                f"need at least {MIN_STRIPE_CENTRES}; is the stripe on both boards "
-                                f"and bright enough?{drop}")
+        few = [(k, p) for k, p in enumerate(stripe_problems) if p]
+        for k, problem in few:
+            out.problems.append(f"{pos.stripe_image}: board {k}: {problem}; is the stripe on both "
+                                f"boards, bright enough, and lidar.laser_colour right?{drop}")
         if out.saturated_share > MAX_SATURATED_SHARE:
             out.problems.append(f"{pos.stripe_image}: {100 * out.saturated_share:.0f} % of the "
                                 "stripe's core pixels are saturated; lower the exposure or the "
                                 "gain so the stripe's peak stays below full scale")
         if not few:
             try:
-                cl = camera_lines_from_centres(camera, centres, [b.plane for b in boards])
+                cl = camera_lines_from_centres(camera, centres, [b.plane_pnp for b in boards])
                 alpha, out.alpha_deg = cl.alpha, cl.alpha_deg
             except (ValueError, np.linalg.LinAlgError) as e:
                 out.problems.append(f"{pos.stripe_image}: no laser plane from the stripes ({e})"

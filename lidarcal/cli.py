@@ -101,6 +101,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--square-mm", type=float, required=True)
     s.add_argument("-o", "--out", type=Path, default=None, help="write camera.json here")
 
+    s = sub.add_parser("laser-plane", help="the plane of a line laser from photos of it on a "
+                                           "flat chessboard")
+    s.add_argument("photos", type=Path, help="folder of lights-on photos of the laser on the board")
+    s.add_argument("--pattern", type=_pattern, required=True, help="inner corners, e.g. 8x5 (or 5x8)")
+    s.add_argument("--square-mm", type=float, required=True)
+    s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
+    s.add_argument("--out", type=Path, required=True, help="plane.json to write")
+    s.add_argument("--laser-colour", default="auto",
+                   choices=["auto", "red", "green", "blue", "gray"],
+                   help="the laser's colour (gray: a NIR laser); auto decides from the photos")
+
     s = sub.add_parser("calibrate", help="calibrate the LiDAR pose function from a dataset")
     s.add_argument("dataset", type=Path)
     s.add_argument("--out", type=Path, required=True, help="output folder for calibration.json")
@@ -247,8 +258,24 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
     print("dist k1 k2 p1 p2 k3: " + " ".join(f"{v:.6f}" for v in d))
     print(f"RMS reprojection error {cam.rms_px:.4f} px")
     if a.out is not None:
-        write_json_atomic(a.out, cam.to_dict())
+        write_json_atomic(a.out, res.to_dict())
         print(f"wrote {a.out}")
+    return 0
+
+
+def _cmd_laser_plane(a: argparse.Namespace) -> int:
+    from .dataset import BoardSpec
+    from .laserplane import laser_plane, read_camera_json, write_laser_plane
+
+    res = laser_plane(a.photos, BoardSpec(a.pattern, a.square_mm), read_camera_json(a.camera),
+                      a.laser_colour)
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    n_used = sum(p.used for p in res.photos)
+    print(f"photos used {n_used} of {len(res.photos)}; normal "
+          f"{np.array2string(res.plane.normal, precision=6)}, d {res.plane.d:.3f} mm, "
+          f"rms {res.rms_mm:.3f} mm")
+    print(f"wrote {write_laser_plane(res, a.out)}")
     return 0
 
 
@@ -259,7 +286,8 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     skip = set(a.skip)
     # decode the stripe images in a background thread while the heavier modules import;
     # leaving the block (result or error) stops and joins it before anything is printed
-    with ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size) as images:
+    with ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size,
+                       laser_colour=ds.lidar.laser_colour) as images:
         from .pipeline import calibrate, write_calibration
 
         res = calibrate(ds, skip=a.skip, strict=a.strict,
@@ -378,6 +406,7 @@ COMMANDS = {
     "import": _cmd_import,
     "check": _cmd_check,
     "intrinsics": _cmd_intrinsics,
+    "laser-plane": _cmd_laser_plane,
     "calibrate": _cmd_calibrate,
     "pose": _cmd_pose,
     "measure": _cmd_measure,

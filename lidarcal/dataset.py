@@ -21,6 +21,8 @@ from typing import Any, Self
 import cv2
 import numpy as np
 
+from .laser_colour import LASER_COLOURS
+
 DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
 MEASUREMENTS_FORMAT = "lidarcal-measurements/1"
@@ -85,6 +87,9 @@ class LidarSpec:
     range_min_mm: float
     range_max_mm: float
     z_axis_hint: tuple[float, float, float] = DEFAULT_Z_AXIS_HINT
+    #: the laser's colour in the stripe images (``lidar.laser_colour``): red, green, blue,
+    #: gray (a NIR laser) or auto; see :func:`lidarcal.stripe.laser_response`
+    laser_colour: str = "auto"
 
     @property
     def n_beams(self) -> int:
@@ -242,8 +247,12 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
     hint_arr = _matrix(hint, (3,), jpath, "lidar.z_axis_hint")
     if np.linalg.norm(hint_arr) == 0:
         raise DatasetError(jpath, "'lidar.z_axis_hint' must not be the zero vector")
+    colour = ld.get("laser_colour", "auto")
+    if colour not in LASER_COLOURS:
+        raise DatasetError(jpath, f"'lidar.laser_colour' must be one of {', '.join(LASER_COLOURS)}, "
+                                  f"got {colour!r}")
     lidar = LidarSpec(vals["angle_min_deg"], vals["angle_max_deg"], vals["angle_step_deg"],
-                      rmin, rmax, tuple(float(v) for v in hint_arr))
+                      rmin, rmax, tuple(float(v) for v in hint_arr), colour)
 
     if camera is None and intr is None:
         raise DatasetError(jpath, "needs 'camera' (K, dist) or 'intrinsics_board' with "
@@ -372,9 +381,26 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
     return img
 
 
-def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None) -> np.ndarray:
-    """A stripe image (dark frame, laser stripes) as uint8: colour images by their brightest channel."""
-    return read_image(path, image_size, colour="max")
+def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None,
+                      laser_colour: str = "auto") -> np.ndarray:
+    """A stripe image as uint8: gray images as they are; colour images by
+    :func:`lidarcal.stripe.laser_response` (a dark frame by its brightest channel, a
+    lights-on photo by the laser colour's excess over the other channels)."""
+    if laser_colour == "gray":
+        return read_image(path, image_size, colour="max")
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "missing image; copy it again or drop this position")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim == 2 or img.dtype != np.uint8:
+        return read_image(path, image_size, colour="max")
+    from .stripe import laser_response
+
+    out = laser_response(img[:, :, :3], laser_colour)
+    if image_size is not None and (out.shape[1], out.shape[0]) != tuple(image_size):
+        raise DatasetError(path, f"image is {out.shape[1]}x{out.shape[0]}, expected "
+                                 f"{image_size[0]}x{image_size[1]} (camera.image_size)")
+    return out
 
 
 class ImagePrefetch:
@@ -392,11 +418,12 @@ class ImagePrefetch:
     """
 
     def __init__(self, positions: list[Position], image_size: tuple[int, int] | None,
-                 max_bytes: float = 1 << 30):
+                 max_bytes: float = 1 << 30, laser_colour: str = "auto"):
         import threading
 
         self._images: dict[int, np.ndarray | DatasetError] = {}
         self._size = image_size
+        self._colour = laser_colour
         n_max = len(positions)
         if image_size is not None:
             n_max = int(max_bytes // max(image_size[0] * image_size[1], 1))
@@ -410,7 +437,8 @@ class ImagePrefetch:
             if self._stop.is_set():
                 return
             try:
-                self._images[p.index] = read_stripe_image(p.stripe_image, self._size)
+                self._images[p.index] = read_stripe_image(p.stripe_image, self._size,
+                                                          self._colour)
             except DatasetError as e:
                 self._images[p.index] = e
 

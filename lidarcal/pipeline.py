@@ -132,7 +132,7 @@ def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView,
 
     ``rho`` is the stripe's black/white reflectance ratio on the boards (one per dataset).
     """
-    img = _stripe_image(pos, camera)
+    img = _stripe_image(pos, camera, lidar.laser_colour)
     try:
         cl = camera_lines(camera, img, boards, rho=rho)
     except ValueError as e:
@@ -172,11 +172,12 @@ def _solve_safe(args) -> PositionResult | DatasetError:
 _WORKER: dict = {}
 
 
-def _stripe_image(pos: Position, camera: CameraModel) -> np.ndarray:
+def _stripe_image(pos: Position, camera: CameraModel, laser_colour: str = "auto") -> np.ndarray:
     """The stripe image of ``pos``: prefetched when available, else read now."""
     pre = _WORKER.get("images")
     img = None if pre is None else pre.get(pos)
-    return read_stripe_image(pos.stripe_image, camera.image_size) if img is None else img
+    return read_stripe_image(pos.stripe_image, camera.image_size, laser_colour) \
+        if img is None else img
 
 
 def _fork_context():
@@ -200,7 +201,7 @@ def _solve_task(task: tuple[Position, float | None]) -> PositionResult | Dataset
 def _rho_samples_task(pos: Position) -> list:
     """Reflectance samples of one stripe image (for :func:`dataset_reflectance_ratio`)."""
     try:
-        img = _stripe_image(pos, _WORKER["camera"])
+        img = _stripe_image(pos, _WORKER["camera"], _WORKER["lidar"].laser_colour)
     except DatasetError:
         return []  # unreadable: left to the per-position step, which reports it
     return reflectance_samples(_WORKER["camera"], img, _WORKER["boards"])
@@ -417,7 +418,8 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
     """``calibration.json`` per the contract, plus optional extensions."""
     ds = res.dataset
     psi = {p.index: p.psi_deg for p in res.positions}
-    cam = res.camera.to_dict()
+    # calibrated from intrinsics/: with every view's reprojection RMS and the k3 choice
+    cam = res.intrinsics.to_dict() if res.intrinsics is not None else res.camera.to_dict()
     samples = []
     for p in res.positions:
         row = {"index": p.index, "psi_deg": p.psi_deg, **p.pose.to_dict(),

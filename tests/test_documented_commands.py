@@ -44,6 +44,7 @@ TESTED_BY = {
     "workbook": "test_workbook.py::test_workbook_runs_on_an_unseen_dataset_without_truth",
     "planes": "test_planes.py::test_readme_commands_run",
     "overlay": "test_planes.py::test_readme_commands_run",
+    "laser-plane": "test_laserplane.py::test_cli_writes_the_plane",
 }
 
 _CODE = re.compile(r"```[^\n]*\n(.*?)```|`([^`\n]+)`", re.DOTALL)

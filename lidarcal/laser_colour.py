@@ -1,0 +1,99 @@
+"""The laser's colour: the single-channel image a stripe is found in (section 1.3 on real
+photos).
+
+A dark frame is read by its brightest channel; a lights-on colour photo by the
+laser colour's excess over the other two channels, in which lit white squares
+vanish while the laser does not; a saturated (white) core is filled from the
+stripe's own flanks; an image of the same view without the laser can be
+subtracted (stripe minus board).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: ``lidar.laser_colour`` values: the laser's colour decides the image the stripe is found in.
+LASER_COLOURS = ("auto", "red", "green", "blue", "gray")
+_CHANNEL = {"blue": 0, "green": 1, "red": 2}  # OpenCV's BGR order
+#: ``auto``: a colour whose excess peaks below this (DN) is not a coloured laser -> "gray".
+MIN_COLOUR_EXCESS_DN = 25.0
+#: ``auto``: a frame whose median brightest channel is below this (DN) is a dark frame (the
+#: V rig's stripe images): the brightest channel keeps the laser's full signal there
+DARK_FRAME_DN = 40.0
+#: a laser channel at or above this (DN) is saturated (its core is filled, see laser_response)
+SATURATED_DN = 250
+
+
+def _colour_excess(img: np.ndarray, colour: str) -> np.ndarray:
+    """``L - (O1 + O2) / 2`` (float32) for the laser channel ``L`` and the two others."""
+    f = img[..., :3].astype(np.float32)
+    k = _CHANNEL[colour]
+    others = [c for c in range(3) if c != k]
+    return f[..., k] - 0.5 * (f[..., others[0]] + f[..., others[1]])
+
+
+def detect_laser_colour(image: np.ndarray, reference: np.ndarray | None = None) -> str:
+    """The laser's colour for ``lidar.laser_colour: auto``: "red", "green", "blue" or "gray".
+
+    A gray image is "gray". Otherwise each channel's excess over the other two
+    (:func:`_colour_excess`; of the difference to ``reference``, a lights-on image
+    without the laser, when given) is taken at its 99.95th percentile; the strongest
+    wins if it reaches ``MIN_COLOUR_EXCESS_DN``, else the laser is "gray" (white, or
+    a NIR laser that every channel sees alike).
+    """
+    img = np.asarray(image)
+    if img.ndim == 2 or img.shape[2] == 1:
+        return "gray"
+    f = img[..., :3].astype(np.float32)
+    if reference is not None and np.shape(reference)[:2] == img.shape[:2] \
+            and np.ndim(reference) == 3:
+        f = f - np.asarray(reference)[..., :3].astype(np.float32)
+    sub = f[::2, ::2]
+    score = {c: float(np.percentile(_colour_excess(sub, c), 99.95)) for c in _CHANNEL}
+    best = max(score, key=score.get)
+    return best if score[best] >= MIN_COLOUR_EXCESS_DN else "gray"
+
+
+def laser_response(image: np.ndarray, colour: str = "auto",
+                   reference: np.ndarray | None = None) -> np.ndarray:
+    """The single-channel uint8 image the stripe is found in (section 1.3, real photos).
+
+    ``colour`` (``lidar.laser_colour``): "gray" takes the brightest channel (a dark
+    frame, or a NIR laser); "red", "green", "blue" the colour excess ``L - (O1 + O2) / 2``,
+    in which lit white squares are ~0 while the laser is not; "auto" decides by
+    :func:`detect_laser_colour`, except on a dark frame (median below ``DARK_FRAME_DN``),
+    which is read by its brightest channel. A saturated laser core turns white (all channels
+    clip), which the excess would hollow out: where the laser channel is saturated the
+    response is the largest excess within a few pixels (the stripe's own flanks), so
+    the core is a flat top, symmetric about the centre. ``reference``: a lights-on
+    image of the same view without the laser (``board.png``); its response is
+    subtracted (stripe minus board) when ``image`` is itself lit (its median at least
+    half the reference's), removing what the board shows without the laser.
+    """
+    img = np.asarray(image)
+    if colour not in LASER_COLOURS:
+        raise ValueError(f"laser colour must be one of {', '.join(LASER_COLOURS)}, got {colour!r}")
+    if colour == "auto":
+        dark = img.ndim == 3 and reference is None and \
+            float(np.median(img[::4, ::4, :3].max(axis=2))) < DARK_FRAME_DN
+        colour = "gray" if dark else detect_laser_colour(img, reference)
+    if img.ndim == 2 or colour == "gray":
+        resp = img.astype(np.float32) if img.ndim == 2 else \
+            img[..., :3].max(axis=2).astype(np.float32)
+        ref = None if reference is None else laser_response(reference, "gray")
+    else:
+        resp = _colour_excess(img, colour)
+        sat = img[..., _CHANNEL[colour]] >= SATURATED_DN
+        if sat.any():
+            r = 7  # fills cores up to ~15 px wide; far from a stripe saturated squares stay 0
+            filled = cv2.dilate(resp, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1,) * 2))
+            resp = np.where(sat, np.maximum(resp, filled), resp)
+        ref = None
+        if reference is not None and np.ndim(reference) == 3:
+            ref = np.clip(_colour_excess(np.asarray(reference), colour), 0, 255)
+    if ref is not None and ref.shape == resp.shape:
+        lit = np.median(resp[::4, ::4]) >= 0.5 * max(float(np.median(ref[::4, ::4])), 1.0)
+        if lit:
+            resp = resp - ref
+    return np.clip(np.rint(resp), 0, 255).astype(np.uint8)

@@ -1,0 +1,323 @@
+"""The plane of a line laser from photos of it on a flat chessboard (section 1.3 on its own).
+
+The structured-light step: in each lights-on photo the chessboard gives the
+board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
+(section 1.3, :func:`lidarcal.stripe.stripe_centres` on the laser's colour
+response), their rays meet the board plane (eq. 5) and all the photos' 3D
+stripe points are fitted by one plane (eq. 4, total least squares: geometric
+distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
+chessboard or stripe fails its checks, or whose stripe line lies off the
+common plane, are left out with a warning naming them; sigma comes from a
+bootstrap over the photos used.
+
+Output (``lidarcal-laser-plane/1``): ``normal . X = d_mm`` in the camera frame
+(OpenCV's), ``d_mm >= 0``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .board import board_view
+from .camera import backproject_to_plane, detect_chessboard
+from .dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
+from .geometry import Plane, fit_plane
+from .laser_colour import SATURATED_DN, detect_laser_colour, laser_response
+from .stripe import stripe_centres
+from .stripe_quality import quality_problem
+
+FORMAT = "lidarcal-laser-plane/1"
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
+#: a photo whose stripe points lie further (rms) than this many times the rms of the other
+#: photos about their own plane, and than MIN_OUTLIER_MM, is an outlier (a wrong board pose,
+#: a reflection)
+OUTLIER_K = 4.0
+MIN_OUTLIER_MM = 0.3
+MIN_PHOTOS = 2
+#: a board whose corners fit its pose worse than this (rms, px) is not used
+MAX_BOARD_RMS_PX = 1.0
+#: below this ratio of the 2nd to the 1st singular value of the points the stripes are
+#: (nearly) parallel and the plane is not determined
+MIN_SPREAD = 0.02
+
+
+@dataclass
+class PhotoResult:
+    """One photo: its stripe centres (px), 3D points (mm) and why it was not used."""
+
+    name: str
+    centres_px: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    points_mm: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    rms_px: float | None = None
+    board_plane: Plane | None = None
+    problem: str | None = None
+
+    @property
+    def used(self) -> bool:
+        return self.problem is None
+
+
+@dataclass
+class LaserPlaneResult:
+    plane: Plane
+    rms_mm: float
+    sigma_normal_deg: float
+    sigma_d_mm: float
+    photos: list[PhotoResult]
+    warnings: list[str]
+
+    def to_dict(self) -> dict:
+        return {"format": FORMAT, "normal": self.plane.normal.tolist(), "d_mm": float(self.plane.d),
+                "rms_mm": _num(self.rms_mm),
+                "sigma": {"normal_deg": _num(self.sigma_normal_deg), "d_mm": _num(self.sigma_d_mm)},
+                "images": [{"name": p.name, "used": p.used, "centres": len(p.centres_px),
+                            "rms_px": _num(p.rms_px)} for p in self.photos],
+                "warnings": list(self.warnings)}
+
+
+def _num(v: float | None) -> float | None:
+    """JSON has no NaN: None where a number is not known."""
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def read_camera_json(path: str | Path) -> CameraModel:
+    """``camera.json``: the keys of dataset.json's ``camera`` block (K, dist, image_size)."""
+    path = Path(path)
+    try:
+        raw = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(path, "missing camera file; give the camera.json of "
+                                 "`lidarcal intrinsics`") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DatasetError(path, f"not readable JSON ({e}); give the camera.json of "
+                                 "`lidarcal intrinsics`") from None
+    cam = parse_camera(raw, path)
+    return CameraModel(cam.K, cam.dist, cam.image_size, source=str(path), rms_px=raw.get("rms_px"))
+
+
+def board_gray(image: np.ndarray, colour: str, response: np.ndarray,
+               paint: str = "laser") -> np.ndarray:
+    """The photo as the chessboard detector should see it: without the laser.
+
+    For a coloured laser, the mean of the two other channels (they see little of it);
+    for a gray (NIR, white) laser, luminance. What is left of the laser there (a
+    saturated core clips every channel) is painted out from its surroundings.
+    """
+    if image.ndim == 2:
+        gray = image
+    elif colour in ("red", "green", "blue"):
+        k = {"blue": 0, "green": 1, "red": 2}[colour]
+        o = [c for c in range(3) if c != k]
+        gray = ((image[..., o[0]].astype(np.uint16) + image[..., o[1]]) // 2).astype(np.uint8)
+    else:
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    thr = max(25.0, 0.25 * float(np.percentile(response, 99.9)))
+    m = response > thr  # the laser where it is clear (overexposed white squares are not)
+    if paint == "core" and image.ndim == 3:
+        m &= image[..., :3].min(axis=2) >= SATURATED_DN  # only its white (clipped) core
+    if not m.any():
+        return gray
+    m = cv2.dilate(m.astype(np.uint8), np.ones((5, 5), np.uint8))
+    return cv2.inpaint(gray, m, 3, cv2.INPAINT_TELEA)
+
+
+def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
+               colour: str = "gray", paint: str = "laser") -> tuple[np.ndarray, BoardSpec] | None:
+    """Chessboard corners in a lights-on photo that also shows the laser, or None.
+
+    The detector and the corner refinement see the photo without the laser
+    (:func:`board_gray` with ``paint``; it breaks the detector and pulls corners); the
+    pattern is tried as given and swapped (8x5 = 5x8), the detector's exhaustive mode
+    last. Returns the corners and the board spec they match.
+    """
+    clean = board_gray(image, colour, response, paint)
+    c, r = board.inner_corners
+    specs = (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,)
+    for exhaustive in (False, True):
+        for spec in specs:
+            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive)
+            if corners is not None:
+                return corners, spec
+    return None
+
+
+def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
+                  laser_colour: str = "auto") -> PhotoResult:
+    """Stripe centres and 3D stripe points (eq. 5) of one photo, or its problem."""
+    res = PhotoResult(path.name)
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        res.problem = "cannot be decoded as an image"
+        return res
+    if (img.shape[1], img.shape[0]) != tuple(camera.image_size):
+        res.problem = (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
+                       f"{camera.image_size[0]}x{camera.image_size[1]}")
+        return res
+    colour = detect_laser_colour(img) if laser_colour == "auto" else laser_colour
+    response = laser_response(img, colour)
+    # only the laser's clipped core painted out first (corners under the stripe keep their
+    # own pixels), then the whole visible laser: the board pose that fits its corners best
+    view = None
+    for paint in ("core", "laser"):
+        found = find_board(img, board, response, colour, paint)
+        if found is not None:
+            v = board_view(camera, found[0], found[1])
+            if view is None or v.reprojection_rms_px[1] < view.reprojection_rms_px[1]:
+                view = v
+            if view.reprojection_rms_px[1] <= MAX_BOARD_RMS_PX / 2:
+                break
+    if view is None:
+        res.problem = (f"the {board.inner_corners[0]}x{board.inner_corners[1]} chessboard "
+                       "was not found")
+        return res
+    if view.reprojection_rms_px[1] > MAX_BOARD_RMS_PX:
+        res.problem = (f"the chessboard corners do not fit one board pose (reprojection "
+                       f"{view.reprojection_rms_px[1]:.2f} px)")
+        return res
+    mask = np.zeros(img.shape[:2], np.uint8)
+    cv2.fillPoly(mask, [np.round(view.outline_px).astype(np.int32)], 1)
+    pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
+    res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
+        float(info["fit_rms_px"])
+    problem = info.get("problem") if "quality" not in info else quality_problem(info["quality"])
+    if problem:
+        res.problem = f"laser stripe on the board: {problem}"
+        return res
+    res.centres_px = pts
+    res.board_plane = view.plane_pnp  # the ML pose: better than the homography's plane
+    res.points_mm = backproject_to_plane(camera, pts, view.plane_pnp)
+    return res
+
+
+def _rms_to_plane(photo: PhotoResult, plane: Plane) -> float:
+    return float(np.sqrt(np.mean(plane.distance(photo.points_mm) ** 2)))
+
+
+def _oriented(plane: Plane) -> Plane:
+    return plane if plane.d >= 0 else Plane(-plane.normal, -plane.d)
+
+
+def fit_laser_plane(photos: list[PhotoResult], n_boot: int = 200, seed: int = 0
+                    ) -> tuple[Plane, float, float, float, list[str]]:
+    """Eq. (4) by total least squares over every used photo's 3D stripe points, robustly.
+
+    Each photo's stripe is one line; leaving each photo out in turn, the one whose
+    removal fits the others best is dropped when its points lie further (rms) off the
+    others' plane than ``OUTLIER_K`` times their own rms and ``MIN_OUTLIER_MM``; then
+    again on the rest. Each photo weighs by its points.
+    Sigma: bootstrap over the photos (``n_boot`` resamples): the rms angle of the
+    resampled normals to the estimate, and the std of ``d`` (mm).
+    Returns (plane, rms_mm, sigma_normal_deg, sigma_d_mm, warnings).
+    """
+    warnings: list[str] = []
+    used = [p for p in photos if p.used]
+    while len(used) > MIN_PHOTOS + 1:
+        # leave one out: the photo whose removal fits the rest best is the suspect; it is an
+        # outlier when its stripe lies far off the plane of the others
+        loo, rest = [], []
+        for p in used:
+            others = [q for q in used if q is not p]
+            pl = fit_plane(np.vstack([q.points_mm for q in others]))
+            loo.append(_rms_to_plane(p, pl))
+            rest.append(float(np.sqrt(np.mean(pl.distance(np.vstack([q.points_mm
+                                                                      for q in others])) ** 2))))
+        k = int(np.argmin(rest))
+        if loo[k] <= max(OUTLIER_K * rest[k], MIN_OUTLIER_MM):
+            break
+        used[k].problem = (f"its stripe lies {loo[k]:.2f} mm rms off the plane of the other "
+                           f"photos (their rms {rest[k]:.2f} mm): a wrong board pose or a "
+                           "reflection")
+        used = [p for p in used if p.used]
+    if len(used) < MIN_PHOTOS:
+        raise ValueError(f"the laser stripe was measured on {len(used)} photo(s), need at least "
+                         f"{MIN_PHOTOS} with the board in different poses")
+    allp = np.vstack([p.points_mm for p in used])
+    plane = _oriented(fit_plane(allp))
+    sv = np.linalg.svd(allp - allp.mean(0), compute_uv=False)
+    if sv[1] < MIN_SPREAD * sv[0]:
+        raise ValueError("the stripes of all photos lie on (nearly) one line: the plane is not "
+                         "determined; tilt and move the board between photos")
+    rms = float(np.sqrt(np.mean(plane.distance(allp) ** 2)))
+    rng = np.random.default_rng(seed)
+    angs, ds = [], []
+    for _ in range(n_boot if len(used) >= 3 else 0):
+        pick = rng.integers(0, len(used), len(used))
+        P = np.vstack([used[i].points_mm for i in pick])
+        if np.linalg.svd(P - P.mean(0), compute_uv=False)[1] < MIN_SPREAD * sv[0]:
+            continue
+        b = fit_plane(P)
+        if b.normal @ plane.normal < 0:
+            b = Plane(-b.normal, -b.d)
+        angs.append(np.degrees(np.arccos(np.clip(b.normal @ plane.normal, -1, 1))))
+        ds.append(b.d)
+    if len(angs) >= 20:
+        s_ang = float(np.sqrt(np.mean(np.square(angs))))
+        s_d = float(np.std(ds))
+    else:
+        s_ang, s_d = float("nan"), float("nan")
+        warnings.append(f"only {len(used)} photos used: no bootstrap uncertainty; add photos")
+    if len(used) < 4:
+        warnings.append(f"only {len(used)} photos used: the plane has little redundancy")
+    return plane, rms, s_ang, s_d, warnings
+
+
+def laser_plane(folder: str | Path, board: BoardSpec, camera: CameraModel,
+                laser_colour: str = "auto") -> LaserPlaneResult:
+    """The laser plane from the photos of a folder (see the module docstring).
+
+    Raises
+    ------
+    DatasetError
+        Naming the folder when it holds no photos or too few usable ones.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(folder, "not a folder of laser photos")
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not paths:
+        raise DatasetError(folder, "holds no .png/.jpg/.bmp/.tif photos")
+    photos = [measure_photo(p, camera, board, laser_colour) for p in paths]
+    try:
+        plane, rms, s_ang, s_d, warn = fit_laser_plane(photos)
+    except ValueError as e:
+        reasons = "; ".join(f"{p.name}: {p.problem}" for p in photos if p.problem)
+        raise DatasetError(folder, f"{e}" + (f" ({reasons})" if reasons else "")) from None
+    warnings = [f"{folder / p.name}: not used: {p.problem}" for p in photos if p.problem]
+    return LaserPlaneResult(plane, rms, s_ang, s_d, photos, warnings + warn)
+
+
+def write_laser_plane(result: LaserPlaneResult, path: str | Path) -> Path:
+    """``plane.json`` (``lidarcal-laser-plane/1``), written atomically."""
+    path = Path(path)
+    write_json_atomic(path, result.to_dict())
+    return path
+
+
+def residual_figure(result: LaserPlaneResult):
+    """A matplotlib Figure for a report: each used photo's stripe points, their distance to
+    the fitted plane (mm) along the stripe, one colour per photo; unused photos listed."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.2), layout="constrained")
+    for p in result.photos:
+        if not p.used:
+            continue
+        P = p.points_mm
+        t = (P - P.mean(0)) @ np.linalg.svd(P - P.mean(0), full_matrices=False)[2][0]
+        o = np.argsort(t)
+        ax.plot(t[o], result.plane.distance(P)[o], lw=0.8, label=p.name)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("along the stripe (mm)")
+    ax.set_ylabel("distance to the laser plane (mm)")
+    unused = [p.name for p in result.photos if not p.used]
+    ax.set_title(f"laser plane: rms {result.rms_mm:.3f} mm, {len(result.photos) - len(unused)} "
+                 f"photos used" + (f"; not used: {', '.join(unused)}" if unused else ""),
+                 fontsize=9)
+    if len(result.photos) <= 16:
+        ax.legend(fontsize=6, ncol=2)
+    return fig

@@ -1,0 +1,86 @@
+"""Per-stripe quality gates (section 1.3 on real images): a stripe that is not found is a
+skip or an error, never wrong points."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StripeGates:
+    """Per-image quality gates of a stripe (section 1.3 on real images).
+
+    The centres must form one smooth curve: their RMS about it at most
+    ``max_rms_width`` times the stripe width (FWHM) or ``min_rms_px``, whichever is
+    larger; at least ``min_inlier_share`` of the columns' centres on it; crossing at
+    least ``min_coverage`` of the board along the stripe; a median peak of at least
+    ``min_median_snr`` noise sigmas; at least ``min_points`` centres.
+    """
+
+    max_rms_width: float = 0.25
+    min_rms_px: float = 0.5
+    min_inlier_share: float = 0.6
+    min_coverage: float = 0.3
+    min_median_snr: float = 10.0
+    min_points: int = 10
+
+
+DEFAULT_GATES = StripeGates()
+
+
+def stripe_quality(pts: np.ndarray, n_rejected: int, fit_rms_px: float, width_px: float,
+                   snr: np.ndarray, mask: np.ndarray, origin: tuple[int, int] = (0, 0)
+                   ) -> dict:
+    """The numbers the gates of :class:`StripeGates` judge one stripe by.
+
+    ``coverage``: the share of the mask crossed along the stripe: the mask's pixels
+    within 2 px of the centres' line, binned every 4 px along it, and the share of
+    those bins that hold a centre. ``mask`` is given with its ``origin`` (x0, y0) in
+    the image.
+    """
+    n = len(pts)
+    q = {"points": n, "rms_px": float(fit_rms_px), "width_px": float(width_px),
+         "inlier_share": n / max(n + n_rejected, 1),
+         "median_snr": float(np.median(snr)) if n else 0.0, "coverage": 0.0}
+    if n < 3:
+        return q
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
+    t_dir, n_dir = vt[0], vt[1]
+    ys, xs = np.nonzero(mask)
+    P = np.column_stack([xs + origin[0], ys + origin[1]]).astype(float) - c
+    band = np.abs(P @ n_dir) <= 2.0
+    if not band.any():
+        return q
+    tm = P[band] @ t_dir
+    lo = tm.min()
+    nb = int((tm.max() - lo) // 4) + 1
+    board_bins = np.zeros(nb, bool)
+    board_bins[((tm - lo) // 4).astype(int)] = True
+    tc = ((pts - c) @ t_dir - lo) // 4
+    tc = tc[(tc >= 0) & (tc < nb)].astype(int)
+    hit = np.zeros(nb, bool)
+    hit[tc] = True
+    q["coverage"] = float((hit & board_bins).sum() / max(board_bins.sum(), 1))
+    return q
+
+
+def quality_problem(q: dict, gates: StripeGates = DEFAULT_GATES) -> str | None:
+    """Why a stripe fails :class:`StripeGates` (one phrase), or None when it passes."""
+    if q["points"] < gates.min_points:
+        return f"{q['points']} stripe centres found, need at least {gates.min_points}"
+    limit = max(gates.max_rms_width * q["width_px"], gates.min_rms_px)
+    if not np.isfinite(q["rms_px"]) or q["rms_px"] > limit:
+        return (f"the stripe centres do not form one smooth curve (rms {q['rms_px']:.2f} px, "
+                f"limit {limit:.2f} px)")
+    if q["inlier_share"] < gates.min_inlier_share:
+        return (f"only {100 * q['inlier_share']:.0f} % of the stripe centres lie on one curve "
+                f"(need {100 * gates.min_inlier_share:.0f} %)")
+    if q["coverage"] < gates.min_coverage:
+        return (f"the stripe crosses only {100 * q['coverage']:.0f} % of the board "
+                f"(need {100 * gates.min_coverage:.0f} %)")
+    if q["median_snr"] < gates.min_median_snr:
+        return f"the stripe is faint (median peak {q['median_snr']:.1f} noise sigmas)"
+    return None
