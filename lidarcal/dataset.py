@@ -149,6 +149,20 @@ class Dataset:
         return json.loads(p.read_text(encoding="utf-8-sig")) if p.is_file() else None
 
 
+def read_json_object(path: Path, missing: str, fix: str, hint: str = "") -> dict:
+    """The JSON object in ``path``, or :class:`DatasetError`: ``missing`` when there is no such
+    file, ``not valid JSON (...); {fix}``, ``must hold a JSON object{hint}``."""
+    if not path.is_file():
+        raise DatasetError(path, missing)
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8-sig"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(path, f"not valid JSON ({e}); {fix}") from None
+    if not isinstance(raw, dict):
+        raise DatasetError(path, f"must hold a JSON object{hint}")
+    return raw
+
+
 def _num(value: Any, path: Path, key: str, positive: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise DatasetError(path, f"'{key}' must be a finite number, got {value!r}; fix dataset.json")
@@ -216,14 +230,8 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
     if not root.is_dir():
         raise DatasetError(root, "not a dataset folder (does not exist or is not a directory)")
     jpath = root / "dataset.json"
-    if not jpath.is_file():
-        raise DatasetError(jpath, "missing; every dataset needs dataset.json (see dataset-format.md)")
-    try:
-        raw = json.loads(jpath.read_text(encoding="utf-8-sig"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(jpath, f"not valid JSON ({e}); fix or re-export it") from None
-    if not isinstance(raw, dict):
-        raise DatasetError(jpath, "must hold a JSON object")
+    raw = read_json_object(jpath, "missing; every dataset needs dataset.json (see "
+                                  "dataset-format.md)", "fix or re-export it")
     fmt = raw.get("format")
     if fmt != DATASET_FORMAT:
         raise DatasetError(jpath, f"unknown format {fmt!r}, expected '{DATASET_FORMAT}'; "

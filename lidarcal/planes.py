@@ -12,8 +12,9 @@ which is linear in the nine entries of ``H``. Steps:
 1. board plane per view with its 3x3 covariance from the corner noise
    (:func:`board_plane`, ``cv2.solvePnP`` + the projection Jacobian; of the package's
    corners and OpenCV's accuracy-mode corners, the set that fits the board better);
-2. straight segments of each scan (:func:`lidarcal.segments.scan_segments`, quantised
-   ranges allowed for) and the board segment chosen by consensus: rigid hypotheses
+2. straight segments of each scan (:func:`lidarcal.scan_segments.line_segments`, the V
+   pipeline's segmenter, with the noise about lines of :func:`local_line_noise`: quantised
+   and repeated ranges allowed for) and the board segment chosen by consensus: rigid hypotheses
    from the linear solution of five random views, every view's candidates scored
    against the board plane they predict (:func:`select_board_segments`);
 3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
@@ -57,7 +58,7 @@ from .degeneracy import (
 )
 from .geometry import Plane, nearest_rotation, plane_basis
 from .scan import scan_points
-from .segments import MIN_POINTS, Segment, local_line_noise, scan_segments
+from .scan_segments import MIN_POINTS, LineSegment, line_segments, local_line_noise
 
 EXTRINSICS_FORMAT = "lidarcal-extrinsics/1"
 #: Views needed to cross-check the board segments (the linear H has nine unknowns, each view
@@ -252,7 +253,7 @@ def _rms_under(h: np.ndarray, m: _Moments) -> np.ndarray:
     return 1000.0 * np.sqrt(np.maximum(sse, 0.0) / m.n)
 
 
-def select_board_segments(candidates: list[list[Segment]], planes: list[Plane],
+def select_board_segments(candidates: list[list[LineSegment]], planes: list[Plane],
                           gates_mm: list[float], rng: np.random.Generator,
                           hypotheses: int = 10000, max_candidates: int = 4) -> list[int | None]:
     """Which candidate segment of each view is the board: consensus of linear hypotheses.
@@ -365,7 +366,7 @@ class ViewData:
     range_mm: np.ndarray
     sigma_range_mm: float
     beams: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    candidates: list[Segment] = field(default_factory=list)
+    candidates: list[LineSegment] = field(default_factory=list)
     note: str = ""
 
     @property
@@ -585,7 +586,8 @@ def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int 
                       f"{pr.image_path.name}")
         else:  # the corner set that fits the board model best
             v.board = min((board_plane(camera, c, b) for c, b in found), key=lambda bp: bp.sigma_px)
-            v.candidates = scan_segments(pr.angle_deg, pr.range_mm, sig, min_points)
+            v.candidates = line_segments(pr.angle_deg, pr.range_mm, range_noise_mm=sig,
+                                         min_points=min_points)[0]
         views.append(v)
     return views
 
@@ -717,18 +719,12 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
 def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
                seed: int = 0, limit_mm: float = UNDETERMINED_MM) -> PlanesResult:
     """``lidarcal planes``: read the view pairs and the camera, calibrate."""
-    import json
-
-    from .dataset import parse_camera
+    from .dataset import parse_camera, read_json_object
     from .io.pairs import read_view_pairs
 
     cpath = Path(camera_json)
-    if not cpath.is_file():
-        raise DatasetError(cpath, "missing camera file; expected JSON with K, dist, image_size")
-    try:
-        cam = parse_camera(json.loads(cpath.read_text(encoding="utf-8-sig")), cpath)
-    except json.JSONDecodeError as e:
-        raise DatasetError(cpath, f"not valid JSON ({e})") from None
+    cam = parse_camera(read_json_object(cpath, "missing camera file; expected JSON with K, dist, "
+                                               "image_size", "fix it"), cpath)
     pairs = read_view_pairs(folder)
     views = prepare_views(pairs, cam, board)
     res = calibrate_planes(views, seed=seed, limit_mm=limit_mm, where=folder)

@@ -1,4 +1,7 @@
-"""Scan lines in the LiDAR frame: points (eq. 6), V segmentation, constrained lines (eqs. 7-12).
+"""Scan lines in the LiDAR frame: V segmentation, constrained lines (eqs. 7-12).
+
+The points (eq. 6), range noise and straight pieces of a scan are in
+:mod:`lidarcal.scan_segments` (re-exported here: ``from lidarcal.scan import line_segments``).
 
 Convention: the LiDAR frame is the scanner's (beam angle 0 = x axis, 90 deg =
 y axis, z = x cross y); scan points lie in its z = 0 plane. Lengths in mm,
@@ -26,130 +29,21 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
-_MAD = 1.4826  # MAD -> standard deviation for Gaussian noise
-_TAN_MAX_INCIDENCE = 6.0  # surfaces up to ~80 deg incidence count as continuous
-# a piece is two lines only if the second line at least halves the robust residual scale: a
-# kink (the hinge, a mount) does; structure along one surface (a staircase of dark squares read
-# farther, quantised ranges, a real sensor's range ripple) does not
-_SPLIT_GAIN = 0.5
-_LEVEL_RUN = 4  # consecutive beams off the line at one level: a square, not an outlier
-
-
-# ---------------------------------------------------------------------------
-# eq. (6)
-
-def scan_points(angle_deg: np.ndarray, range_mm: np.ndarray) -> np.ndarray:
-    """Scan points in the LiDAR plane, eq. (6): ``x = rho cos(theta), y = rho sin(theta)``.
-
-    Parameters
-    ----------
-    angle_deg : array, shape (N,)
-        Beam angles, degrees.
-    range_mm : array, shape (N,)
-        Ranges, mm; NaN (or <= 0) = no return.
-
-    Returns
-    -------
-    points : array, shape (N, 2)
-        Row ``i`` belongs to beam ``i`` (the index mapping is kept); beams
-        without a return give a NaN row.
-    """
-    a = np.radians(np.asarray(angle_deg, dtype=float))
-    r = np.asarray(range_mm, dtype=float)
-    if a.shape != r.shape or a.ndim != 1:
-        raise ValueError(f"angle_deg and range_mm must be 1-D of equal length, got {a.shape} "
-                         f"and {r.shape}")
-    r = np.where(np.isfinite(r) & (r > 0), r, np.nan)
-    return np.column_stack([r * np.cos(a), r * np.sin(a)])
-
-
-def estimate_range_noise(range_mm: np.ndarray) -> float:
-    """Robust range-noise estimate (mm) from second differences of neighbouring beams.
-
-    On a smooth surface ``rho[i-1] - 2 rho[i] + rho[i+1]`` is noise with
-    variance ``6 sigma^2`` (the curvature term is negligible at LiDAR angular
-    steps); the MAD makes jumps, spurious returns and mixed pixels harmless.
-    Only triples of three consecutive valid beams are used.
-    """
-    r = np.asarray(range_mm, dtype=float)
-    d2 = r[:-2] - 2 * r[1:-1] + r[2:]
-    d2 = d2[np.isfinite(d2)]
-    if len(d2) < 5:
-        raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
-                         "range noise; pass range_noise_mm")
-    return float(_MAD * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
-
-
-def estimate_range_quantum(range_mm: np.ndarray) -> float:
-    """The ranges' resolution (mm): the smallest gap between distinct valid ranges, 0 if none.
-
-    A Hokuyo UTM-30LX reports integer mm (1.0), a dataset written with one
-    decimal 0.1. Accepted only when at least 99 % of the valid ranges are
-    multiples of it (else 0: not quantised).
-    """
-    r = np.asarray(range_mm, dtype=float)
-    r = r[np.isfinite(r) & (r > 0)]
-    u = np.unique(r)
-    if len(u) < 3:
-        return 0.0
-    q = float(np.min(np.diff(u)))
-    k = r / q
-    if q <= 0 or np.mean(np.abs(k - np.round(k)) <= 1e-6) < 0.99:
-        return 0.0
-    return q
-
-
-def effective_range_noise(range_mm: np.ndarray) -> float:
-    """Range noise (mm) for the segmentation thresholds: ``sqrt(sigma^2 + q^2 / 12)``.
-
-    ``sigma`` from second differences (:func:`estimate_range_noise`), ``q`` the
-    ranges' quantum (:func:`estimate_range_quantum`), whose rounding error is
-    uniform with variance ``q^2 / 12``: on real quantised scans a third of the
-    neighbouring ranges are equal, the second differences mostly 0 and their
-    MAD alone would call the noise nil.
-    """
-    sigma = estimate_range_noise(range_mm)
-    q = estimate_range_quantum(range_mm)
-    return float(np.sqrt(sigma ** 2 + q ** 2 / 12.0))
-
+from .scan_segments import (  # noqa: F401  (re-exported: the segmentation lives there)
+    Line2D,
+    LineSegment,
+    effective_range_noise,
+    estimate_range_noise,
+    estimate_range_quantum,
+    fit_line_2d,
+    line_segments,
+    local_line_noise,
+    scan_points,
+)
 
 # ---------------------------------------------------------------------------
-# small 2D line helpers (total least squares)
-
-@dataclass(frozen=True)
-class Line2D:
-    """Line ``normal . p = offset`` in the LiDAR plane, ``|normal| = 1``, mm."""
-
-    normal: np.ndarray
-    offset: float
-
-    @property
-    def direction(self) -> np.ndarray:
-        return np.array([-self.normal[1], self.normal[0]])
-
-    def distance(self, points: np.ndarray) -> np.ndarray:
-        """Signed orthogonal distance of points (N, 2), mm."""
-        return np.asarray(points, dtype=float) @ self.normal - self.offset
-
-    def foot(self, point: np.ndarray) -> np.ndarray:
-        """Orthogonal projection of one point onto the line."""
-        p = np.asarray(point, dtype=float)
-        return p - (p @ self.normal - self.offset) * self.normal
-
-
-def fit_line_2d(points: np.ndarray) -> Line2D:
-    """Total-least-squares line through 2D points (minimises orthogonal distances)."""
-    p = np.asarray(points, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
-        raise ValueError(f"A line needs points with shape (N >= 2, 2), got {p.shape}")
-    c = p.mean(0)
-    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
-    n = vt[-1]
-    return Line2D(n, float(n @ c))
-
+# small 2D line helpers (the TLS line itself: :func:`fit_line_2d`)
 
 def intersect_lines_2d(a: Line2D, b: Line2D) -> np.ndarray:
     """The common point of two lines (2 x 2 linear system)."""
@@ -173,154 +67,6 @@ def _unit2(v: np.ndarray) -> np.ndarray:
     if n == 0:
         raise ValueError("degenerate V: a segment end coincides with the vertex")
     return v / n
-
-
-def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
-    """TLS sum of squared orthogonal residuals of p[:k] + p[k:] for k in [lo, hi) (prefix sums)."""
-    q = p - p.mean(0)
-    n = len(q)
-
-    def sse(cnt, sx, sy, sxx, sxy, syy):
-        mx, my = sx / cnt, sy / cnt
-        a = sxx - cnt * mx * mx
-        b = sxy - cnt * mx * my
-        c = syy - cnt * my * my
-        # smallest eigenvalue of [[a, b], [b, c]]
-        return np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
-
-    cs = [np.concatenate([[0.0], np.cumsum(v)]) for v in
-          (q[:, 0], q[:, 1], q[:, 0] ** 2, q[:, 0] * q[:, 1], q[:, 1] ** 2)]
-    k = np.arange(lo, hi)
-    left = sse(k.astype(float), *(c[k] for c in cs))
-    right = sse((n - k).astype(float), *(c[-1] - c[k] for c in cs))
-    return left + right
-
-
-def _mad_scale(r: np.ndarray) -> float:
-    """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
-    return float(_MAD * np.median(np.abs(r - np.median(r))))
-
-
-def _two_line_scale(p: np.ndarray, k: int) -> float:
-    """Robust scale of the pooled residuals of TLS lines through ``p[:k]`` and ``p[k:]``."""
-    return _mad_scale(np.concatenate([fit_line_2d(p[:k]).distance(p[:k]),
-                                      fit_line_2d(p[k:]).distance(p[k:])]))
-
-
-def _split_into_lines(p: np.ndarray, sigma: float, min_points: int) -> list[tuple[int, int]]:
-    """Top-down split of ordered points into line pieces, as [start, end) ranges.
-
-    A piece is split at the breakpoint minimising the two-line TLS error while
-    its single-line residuals have a robust scale (MAD) above ``2 sigma`` *and*
-    the two lines at least halve that scale (``_SPLIT_GAIN``): the test adapts
-    to the measured residuals, so a surface whose ranges step by a few mm
-    along it (dark squares read farther, quantised or rippled real ranges)
-    stays one piece, while a kink (the hinge, a mount) is split.
-    """
-    n = len(p)
-    if n < 2 * min_points:
-        return [(0, n)]
-    scale = _mad_scale(fit_line_2d(p).distance(p))
-    if scale <= 2.0 * sigma:
-        return [(0, n)]
-    sse = _tls_sse_splits(p, min_points, n - min_points + 1)
-    k = min_points + int(np.argmin(sse))
-    if _two_line_scale(p, k) > _SPLIT_GAIN * scale:
-        return [(0, n)]
-    left = _split_into_lines(p[:k], sigma, min_points)
-    right = _split_into_lines(p[k:], sigma, min_points)
-    return left + [(a + k, b + k) for a, b in right]
-
-
-def _merge_collinear(p: np.ndarray, pieces: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    """Merge neighbouring pieces that are one line by the split test of :func:`_split_into_lines`.
-
-    Two adjacent pieces are merged when one line through both has a robust
-    residual scale below ``1 / _SPLIT_GAIN`` times that of their own two lines
-    (the top-down split may cut a long staircase where neither half is straight).
-    """
-    out = list(pieces)
-    merged = True
-    while merged and len(out) > 1:
-        merged = False
-        for i in range(len(out) - 1):
-            (a, k), (_, b) = out[i], out[i + 1]
-            q = p[a:b]
-            if _mad_scale(fit_line_2d(q).distance(q)) * _SPLIT_GAIN < _two_line_scale(q, k - a):
-                out[i:i + 2] = [(a, b)]
-                merged = True
-                break
-    return out
-
-
-def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
-                 k: float = 3.5, trials: int = 100) -> tuple[Line2D, np.ndarray, float]:
-    """RANSAC (threshold ``k sigma``) then iterated TLS refit, threshold ``k`` x MAD scale.
-
-    Returns the line, the inlier mask and the robust residual scale (mm).
-    """
-    n = len(p)
-    best = np.ones(n, bool)
-    if n > 3:
-        # all hypotheses at once: pairs of distinct points, their line normals, inlier counts
-        i = rng.integers(n, size=trials)
-        j = (i + rng.integers(1, n, size=trials)) % n
-        d = p[j] - p[i]
-        ln = np.hypot(d[:, 0], d[:, 1])
-        good = ln > 0
-        if good.any():
-            i, d, ln = i[good], d[good], ln[good]
-            nrm = np.column_stack([-d[:, 1], d[:, 0]]) / ln[:, None]
-            off = np.einsum("ij,ij->i", p[i], nrm)
-            inl = np.abs(p @ nrm.T - off) <= k * sigma  # (n, hypotheses)
-            best = inl[:, int(np.argmax(inl.sum(0)))]
-    mask = best
-    line = fit_line_2d(p[mask]) if mask.sum() >= 2 else fit_line_2d(p)
-    scale = sigma
-    for _ in range(20):
-        r = line.distance(p)
-        # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
-        # re-estimating it from already-trimmed inliers
-        scale = max(_MAD * np.median(np.abs(r)), 0.25 * sigma)
-        new = np.abs(r) <= k * scale
-        if new.sum() < 2:
-            break
-        line = fit_line_2d(p[new])
-        if np.array_equal(new, mask):
-            break
-        mask = new
-    levels = _level_runs(p, line, mask, sigma)
-    if levels.any():
-        mask = mask | levels
-        line = fit_line_2d(p[mask])
-    return line, mask, float(scale)
-
-
-def _level_runs(p: np.ndarray, line: Line2D, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """Rejected points that are a level of the surface, not outliers: a staircase of squares.
-
-    A time-of-flight LiDAR reads dark squares a few mm farther than white
-    ones; when that step is large against the noise the robust line keeps one
-    level and rejects the other. Outliers (spurious returns, mixed pixels) are
-    isolated beams; a level is a run of at least ``_LEVEL_RUN`` consecutive
-    rejected points lying parallel to the line (their residuals' robust
-    spread within ``3 sigma``) and offset from it by no more than the range
-    step the run detection (:func:`_runs`) accepts between neighbouring beams
-    on one surface (``6 sqrt(2) sigma + _TAN_MAX_INCIDENCE x`` point spacing).
-    """
-    out = np.zeros(len(p), bool)
-    bad = np.flatnonzero(~mask)
-    if len(bad) < _LEVEL_RUN:
-        return out
-    r = line.distance(p)
-    spacing = float(np.median(np.hypot(*np.diff(p, axis=0).T)))
-    tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * spacing
-    for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
-        rr = r[run]
-        if (len(run) >= _LEVEL_RUN and abs(np.median(rr)) <= tau
-                and _mad_scale(rr) <= 3 * sigma):
-            out[run] = True
-    return out
 
 
 # ---------------------------------------------------------------------------
@@ -363,51 +109,6 @@ class VSegments:
         return self.index2
 
 
-@dataclass
-class LineSegment:
-    """One straight piece of a scan (:func:`line_segments`).
-
-    ``beams``: beam indices of the inliers of its robust line (sorted);
-    ``span``: every beam index of the piece (sorted); ``line``: the robust
-    line; ``scale``: robust scale of its residuals, mm; ``run``: label of the
-    connected run of returns it was cut from.
-    """
-
-    beams: np.ndarray
-    span: np.ndarray
-    line: Line2D
-    scale: float
-    run: int = 0
-
-
-def _runs(rho: np.ndarray, valid_idx: np.ndarray, dtheta: float, sigma: float,
-          max_gap: int) -> np.ndarray:
-    """Connected runs of returns: beams at most ``max_gap`` apart whose range jump is small.
-
-    The allowed jump between beams ``g`` apart is ``6 sqrt(2) sigma + 6 g rho dtheta``
-    (noise plus a surface seen at up to ~80 deg incidence); depth edges are far larger.
-    Skipping up to ``max_gap`` beams bridges dropouts and isolated spurious returns.
-    """
-    m = len(valid_idx)
-    rows, cols = [], []
-    r = rho[valid_idx]
-    for lag in range(1, max_gap + 1):
-        if lag >= m:
-            break
-        g = valid_idx[lag:] - valid_idx[:-lag]
-        rr = np.minimum(r[lag:], r[:-lag])
-        tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * g * rr * dtheta
-        ok = (g <= max_gap) & (np.abs(r[lag:] - r[:-lag]) <= tau)
-        i = np.flatnonzero(ok)
-        rows.append(i)
-        cols.append(i + lag)
-    rows = np.concatenate(rows) if rows else np.zeros(0, int)
-    cols = np.concatenate(cols) if cols else np.zeros(0, int)
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, m))
-    _, labels = connected_components(graph, directed=False)
-    return labels
-
-
 def _trim_outer(beams: np.ndarray, resid: np.ndarray, scale: float, from_start: bool,
                 max_trim: int) -> np.ndarray:
     """Drop up to ``max_trim`` outermost points while their residual exceeds ``2.5 scale``."""
@@ -418,53 +119,6 @@ def _trim_outer(beams: np.ndarray, resid: np.ndarray, scale: float, from_start: 
             break
         keep[i] = False
     return keep
-
-
-def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
-                  range_noise_mm: float | None = None, min_points: int = 8,
-                  max_gap: int = 4) -> tuple[list[LineSegment], float]:
-    """The straight pieces of one scan, in beam order, and the range noise used (mm).
-
-    Steps (1)-(3) of :func:`split_v`, usable for any board (a flat one too):
-    (1) runs of returns connected in beam order (:func:`_runs`); (2) each run
-    cut top-down into straight pieces (:func:`_split_into_lines`: a cut must
-    halve the robust residual scale, so a staircase of dark squares read a few
-    mm farther or quantised, rippled real ranges stay one piece) and
-    neighbouring collinear pieces merged (:func:`_merge_collinear`); (3) a
-    robust line per piece (:func:`_robust_line`: RANSAC, iterated TLS at 3.5 x
-    the MAD scale, runs of consecutive beams at one offset kept as a level of
-    the surface). Pieces with fewer than ``min_points`` inliers are dropped.
-
-    The noise is ``range_noise_mm`` if given, else :func:`effective_range_noise`
-    (second differences plus the quantisation's ``q^2 / 12``).
-    """
-    ang = np.asarray(angle_deg, dtype=float)
-    pts = scan_points(ang, range_mm)
-    rho = np.hypot(pts[:, 0], pts[:, 1])
-    if np.any(np.diff(ang) <= 0):
-        raise ValueError("scan angles must be strictly ascending (beam order)")
-    valid_idx = np.flatnonzero(np.isfinite(rho))
-    if len(valid_idx) < min_points:
-        return [], float(range_noise_mm or 0.0)
-    sigma = float(range_noise_mm) if range_noise_mm is not None else effective_range_noise(rho)
-    sigma = max(sigma, 1e-6 * float(np.median(rho[valid_idx])))
-    dtheta = float(np.median(np.diff(np.radians(ang))))
-    rng = np.random.default_rng(0)
-
-    labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
-    segments: list[LineSegment] = []
-    for lab in np.unique(labels):
-        beams = valid_idx[labels == lab]
-        if len(beams) < min_points:
-            continue
-        p = pts[beams]
-        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points)):
-            span = beams[a:b]
-            line, mask, scale = _robust_line(pts[span], sigma, rng)
-            if mask.sum() >= min_points:
-                segments.append(LineSegment(span[mask], span, line, scale, int(lab)))
-    segments.sort(key=lambda s: s.beams[0])
-    return segments, sigma
 
 
 def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: float | None = None,

@@ -27,3 +27,24 @@ def dataset_copy(small_dataset, tmp_path) -> Path:
     dst = tmp_path / "ds"
     shutil.copytree(small_dataset, dst)
     return dst
+
+
+def bundled_dataset(dst: Path, n: int | None = None, copy: tuple[str, ...] = (),
+                    link: tuple[str, ...] = ("board.png",)) -> Path:
+    """The bundled dataset in ``dst``: its own dataset.json and positions.csv (the first ``n``
+    positions, or all), the entries in ``copy`` copied (to break them), those in ``link``
+    linked, and the stripe images and scans referenced by absolute path (not copied)."""
+    dst.mkdir()
+    shutil.copy(BUNDLED / "dataset.json", dst / "dataset.json")
+    for name in copy:
+        shutil.copy(BUNDLED / name, dst / name)
+    for name in link:
+        (dst / name).symlink_to(BUNDLED / name)
+    rows = (BUNDLED / "positions.csv").read_text().splitlines()
+    rows = rows if n is None else rows[: n + 1]
+    out = [rows[0]]
+    for r in rows[1:]:
+        i, psi, img, scan = r.split(",")
+        out.append(",".join([i, psi, str(BUNDLED / img), str(BUNDLED / scan)]))
+    (dst / "positions.csv").write_text("\n".join(out) + "\n")
+    return dst

@@ -240,19 +240,9 @@ def test_missing_dataset_folder(tmp_path, capsys):
 
 def _bundled_subset(tmp_path, n=8):
     """The first ``n`` positions of the bundled dataset (files referenced, not copied)."""
-    from conftest import BUNDLED
+    from conftest import bundled_dataset
 
-    dst = tmp_path / "sub"
-    dst.mkdir()
-    (dst / "dataset.json").write_text((BUNDLED / "dataset.json").read_text())
-    (dst / "board.png").symlink_to(BUNDLED / "board.png")
-    rows = (BUNDLED / "positions.csv").read_text().splitlines()[: n + 1]
-    out = [rows[0]]
-    for r in rows[1:]:
-        i, psi, img, scan = r.split(",")
-        out.append(",".join([i, psi, str(BUNDLED / img), str(BUNDLED / scan)]))
-    (dst / "positions.csv").write_text("\n".join(out) + "\n")
-    return dst
+    return bundled_dataset(tmp_path / "sub", n)
 
 
 def test_failed_position_in_worker_processes(tmp_path, capsys):
@@ -327,19 +317,9 @@ def test_methods_fill_poses_and_keep_the_others(small_dataset, tmp_path, capsys)
 def _linked_bundled(tmp_path):
     """The bundled dataset with its own dataset.json, positions.csv and board.png (to break)
     and the 87 stripe images and scans referenced by absolute path (not copied)."""
-    from conftest import BUNDLED
+    from conftest import bundled_dataset
 
-    dst = tmp_path / "ds"
-    dst.mkdir()
-    (dst / "dataset.json").write_text((BUNDLED / "dataset.json").read_text())
-    (dst / "board.png").write_bytes((BUNDLED / "board.png").read_bytes())
-    rows = (BUNDLED / "positions.csv").read_text().splitlines()
-    out = [rows[0]]
-    for r in rows[1:]:
-        i, psi, img, scan = r.split(",")
-        out.append(",".join([i, psi, str(BUNDLED / img), str(BUNDLED / scan)]))
-    (dst / "positions.csv").write_text("\n".join(out) + "\n")
-    return dst
+    return bundled_dataset(tmp_path / "ds", copy=("board.png",), link=())
 
 
 def _break(ds, case):

@@ -109,17 +109,9 @@ def lidarcal(*args, cwd: Path) -> subprocess.CompletedProcess:
 
 def _bundled_with_sweeps(dst: Path, n: int) -> Path:
     """The bundled dataset's first ``n`` positions and its disc sweeps (files referenced)."""
-    dst.mkdir()
-    shutil.copy(BUNDLED / "dataset.json", dst / "dataset.json")
-    (dst / "board.png").symlink_to(BUNDLED / "board.png")
-    (dst / "measure").symlink_to(BUNDLED / "measure")
-    rows = (BUNDLED / "positions.csv").read_text().splitlines()[: n + 1]
-    out = [rows[0]]
-    for r in rows[1:]:
-        i, psi, img, scan = r.split(",")
-        out.append(",".join([i, psi, str(BUNDLED / img), str(BUNDLED / scan)]))
-    (dst / "positions.csv").write_text("\n".join(out) + "\n")
-    return dst
+    from conftest import bundled_dataset
+
+    return bundled_dataset(dst, n, link=("board.png", "measure"))
 
 
 def _pose_errors(poses: list[dict], truth: dict):

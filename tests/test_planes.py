@@ -19,7 +19,7 @@ from lidarcal.dataset import BoardSpec, DatasetError
 from lidarcal.io.pairs import read_scan_any, read_view_pairs
 from lidarcal.overlay import lidar_on_image, project_returns
 from lidarcal.planes import calibrate_planes, leave_one_out, run_planes
-from lidarcal.segments import local_line_noise, scan_segments
+from lidarcal.scan import line_segments, local_line_noise
 from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes, write_oneboard
 
 REPO = Path(__file__).resolve().parents[1]
@@ -128,7 +128,7 @@ def test_segments_survive_quantised_repeated_ranges():
     r = np.rint(np.repeat(r[::3], 3)[:len(a)])
     sig = local_line_noise(a, r)
     assert 2.5 < sig < 6.0
-    segs = scan_segments(a, r, sig)
+    segs, _ = line_segments(a, r, range_noise_mm=sig)
     assert len(segs) == 1 and len(segs[0].beams) > 0.95 * len(a)
 
 
@@ -193,6 +193,14 @@ def _lidarcal(*args):
                           text=True, check=False, env={**os.environ, "MPLBACKEND": "Agg"})
 
 
+def _planes_ok(folder: Path, pattern: str, square_mm: str, out: Path) -> dict:
+    """``lidarcal planes FOLDER --camera FOLDER/camera.json``: exit 0; the extrinsics.json."""
+    r = _lidarcal("planes", folder, "--pattern", pattern, "--square-mm", square_mm, "--camera",
+                  folder / "camera.json", "--out", out)
+    assert r.returncode == 0, r.stderr
+    return json.loads((out / "extrinsics.json").read_text())
+
+
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
     """Six rendered one-board views (photos + integer-mm scans) with truth.json."""
@@ -202,10 +210,7 @@ def rendered(tmp_path_factory):
 def test_cli_planes_on_rendered_views(rendered, tmp_path):
     out = tmp_path / "out"
     # the pattern given the other way round (5x8 for 8x5) must work
-    r = _lidarcal("planes", rendered, "--pattern", "5x8", "--square-mm", "80", "--camera",
-                  rendered / "camera.json", "--out", out)
-    assert r.returncode == 0, r.stderr
-    doc = json.loads((out / "extrinsics.json").read_text())
+    doc = _planes_ok(rendered, "5x8", "80", out)
     assert doc["format"] == "lidarcal-extrinsics/1"
     assert {"R", "T_mm", "sigma", "views", "rms_mm", "warnings"} <= set(doc)
     assert set(doc["sigma"]) == {"rotation_deg", "translation_mm"}
@@ -247,10 +252,7 @@ def test_read_view_pairs_rejects_a_bad_scan(tmp_path):
 def test_readme_commands_run(tmp_path, small_dataset):
     # lidarcal planes on the bundled real views, as the README shows it
     out = tmp_path / "OUT"
-    r = _lidarcal("planes", TAPAS, "--pattern", "8x5", "--square-mm", "100", "--camera",
-                  TAPAS / "camera.json", "--out", out)
-    assert r.returncode == 0, r.stderr
-    doc = json.loads((out / "extrinsics.json").read_text())
+    doc = _planes_ok(TAPAS, "8x5", "100", out)
     assert all(v["used"] for v in doc["views"]) and doc["rms_mm"] < 5.0
     assert len(list(out.glob("projection_*.png"))) == 7
     # lidarcal overlay with a calibration of a (small) turntable dataset

@@ -137,7 +137,7 @@ def test_real_flat_board_scans_no_v_and_one_board_piece(name: str) -> None:
 
 def test_merge_collinear_joins_a_cut_staircase_but_not_a_kink() -> None:
     """Pieces cut inside one staircase surface are merged again; the two arms of a kink are not."""
-    from lidarcal.scan import _merge_collinear
+    from lidarcal.scan_segments import _merge_collinear
 
     rng = np.random.default_rng(2)
     ang = np.radians(np.arange(-10, 10, 0.1))

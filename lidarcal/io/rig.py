@@ -5,7 +5,6 @@ Read by ``lidarcal import`` (:mod:`lidarcal.io.bag`); the format is in ``docs/ro
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass
@@ -13,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import DEFAULT_Z_AXIS_HINT, DatasetError, parse_camera
+from ..dataset import DEFAULT_Z_AXIS_HINT, DatasetError, parse_camera, read_json_object
 
 
 @dataclass(frozen=True)
@@ -51,14 +50,8 @@ def _finite(v, path: Path, key: str) -> float:
 def read_rig(path: str | os.PathLike) -> RigFile:
     """Read and check RIG.json (format in ``docs/ros-bags.md``)."""
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "missing rig file; write RIG.json (see docs/ros-bags.md)")
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8-sig"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(path, f"not valid JSON ({e}); fix it") from None
-    if not isinstance(raw, dict):
-        raise DatasetError(path, "must hold a JSON object (see docs/ros-bags.md)")
+    raw = read_json_object(path, "missing rig file; write RIG.json (see docs/ros-bags.md)",
+                           "fix it", " (see docs/ros-bags.md)")
     base: dict = {}
     if raw.get("camera") is not None:
         parse_camera(raw["camera"], path)  # validates

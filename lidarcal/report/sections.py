@@ -69,21 +69,18 @@ def _summary_section(inp: ReportInputs, t1: pd.DataFrame, t2sum: dict, cmp: dict
     key = [("Pose function", f"{esc(method)} (fills 'poses' in calibration.json)"),
            ("Turntable axis", (f"direction {vec(ax.get('direction', [np.nan] * 3), 5)} through "
                               f"{vec(ax.get('point_mm', [np.nan] * 3), 2)} mm"))]
-    lab = f"{method} function vs samples"
-    if lab in t1.index:
-        r = t1.loc[lab]
-        key.append(("Function vs samples (paper's metric)",
-                    (f"centre {fnum(r['centre_mm_mean'], 3)} / {fnum(r['centre_mm_max'], 3)} mm, "
-                    f"z axis {fnum(r['z_axis_deg_mean'], 4)} / {fnum(r['z_axis_deg_max'], 4)} deg, "
-                    f"x axis {fnum(r['x_axis_deg_mean'], 4)} / {fnum(r['x_axis_deg_max'], 4)} deg "
-                    "(mean / max; paper: 1.12 / 2.72 mm, 0.203 / 0.455 deg, 0.662 / 1.580 deg)")))
-    lab = f"{method} function vs truth"
-    if lab in t1.index:
-        r = t1.loc[lab]
-        key.append(("Function vs truth",
-                    (f"centre {fnum(r['centre_mm_mean'], 3)} / {fnum(r['centre_mm_max'], 3)} mm, "
-                    f"z axis {fnum(r['z_axis_deg_mean'], 4)} / {fnum(r['z_axis_deg_max'], 4)} deg, "
-                    f"x axis {fnum(r['x_axis_deg_mean'], 4)} / {fnum(r['x_axis_deg_max'], 4)} deg")))
+    for against, name, tail in (
+            ("samples", "Function vs samples (paper's metric)",
+             " (mean / max; paper: 1.12 / 2.72 mm, 0.203 / 0.455 deg, 0.662 / 1.580 deg)"),
+            ("truth", "Function vs truth", "")):
+        lab = f"{method} function vs {against}"
+        if lab in t1.index:
+            r = t1.loc[lab]
+            key.append((name, (
+                f"centre {fnum(r['centre_mm_mean'], 3)} / {fnum(r['centre_mm_max'], 3)} mm, "
+                f"z axis {fnum(r['z_axis_deg_mean'], 4)} / {fnum(r['z_axis_deg_max'], 4)} deg, "
+                f"x axis {fnum(r['x_axis_deg_mean'], 4)} / {fnum(r['x_axis_deg_max'], 4)} deg"
+                + tail)))
     unc = uncertainty_summary(cal, inp.truth)
     if unc:
         key.append(("Uncertainty (joint fit, 1-sigma)", unc))

@@ -150,14 +150,14 @@ def views_for_planes(rig: OneBoardRig):
     """The views as :func:`lidarcal.planes.calibrate_planes` takes them (board planes from the
     noisy corners, candidate segments from the scans), without rendering photos."""
     from ..planes import ViewData, board_plane
-    from ..segments import local_line_noise, scan_segments
+    from ..scan_segments import line_segments, local_line_noise
 
     out = []
     for v in rig.views:
         sig = local_line_noise(v.angle_deg, v.range_mm)
         vd = ViewData(v.name, board_plane(rig.camera, v.corners_px, rig.board), v.angle_deg,
                       v.range_mm, sig)
-        vd.candidates = scan_segments(v.angle_deg, v.range_mm, sig)
+        vd.candidates = line_segments(v.angle_deg, v.range_mm, range_noise_mm=sig)[0]
         out.append(vd)
     return out
 
