@@ -28,7 +28,17 @@ Scans: :func:`lidarcal.synthetic.simulate_scans`, the full ray-cast LiDAR
 model (beam footprint, mixed pixels at depth edges, Gaussian range noise of
 ``range_noise_mm``, spurious/dropped returns as the preset says). The
 pipeline's own segmentation (:func:`lidarcal.scan.split_v`) and constrained
-line fit (:func:`lidarcal.scan.fit_v_lines`) run on them.
+line fit (:func:`lidarcal.scan.fit_v_lines`) run on them. The setting's
+ranging errors (``range_offset_mm``, ``dark_extra_mm``, ``range_quantum_mm``,
+the simulator's :class:`~lidarcal.synthetic.RigConfig` fields) enter there,
+in the scan model itself; the joint fit tells the returns from black squares by
+the boards' ``blackness`` (here from the truth, :func:`board_blackness_truth`).
+
+Ranging sweep (:func:`ranging_settings`, ``python -m lidarcal.study --ranging
+OUT.csv``): range offset x dark-square extra, solved by :data:`RANGING_METHODS`
+(the joint fit without the ranging model is ``joint_exact``);
+:func:`summarise_ranging` adds what the ranging model recovered (estimates,
+spread, reported sigma, 2-sigma coverage), :func:`plot_ranging` draws it.
 
 Board corners: the true inner corners, moved as a whole by a small random
 tilt (``corner_tilt_deg`` per in-plane axis, about the corners' centre) and

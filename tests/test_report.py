@@ -435,7 +435,7 @@ def test_report_states_ranging_terms(tmp_path):
     assert "#table(columns: 4" in block
     assert "[zero offset], [+8.14], [0.16], [from the data]" in block
     assert "[dark-square extra], [+5.71], [0.43], [from the data]" in block
-    assert "taken as exact" not in block
+    assert "taken as exact" not in block and "1-sigma include their uncertainty" in block
     import typst
 
     (tmp_path / "r.typ").write_text(src)
@@ -444,3 +444,4 @@ def test_report_states_ranging_terms(tmp_path):
     src = build_report_source(ReportInputs(ds, cal, meas, truth), tmp_path, figures=False)
     block = _ranging_block(src)
     assert "ranges taken as exact" in block and "#table" not in block
+    assert "include their uncertainty" not in block

@@ -373,7 +373,10 @@ def _ranging_block(cal: dict) -> str:
     ``ranging`` block (the rigid or paper method, older files) the ranges were taken as exact."""
     from ..ranging import ranging_text
 
-    return "=== Ranging model of the LiDAR\n" + ranging_text(cal.get("ranging"), fmt="typst")
+    rng = cal.get("ranging")
+    note = ("\nThe pose function was fitted with these terms; its 1-sigma include their "
+            "uncertainty.\n" if rng else "")
+    return "=== Ranging model of the LiDAR\n" + ranging_text(rng, fmt="typst") + note
 
 
 def _measurement_warnings(meas: dict | None) -> list[str]:
