@@ -37,6 +37,7 @@ data: $(STAMP)
 
 study: $(STAMP)
 	$(BIN)/python -m lidarcal.study --full reports/study.csv
+	$(BIN)/python -m lidarcal.study --ranging reports/study_ranging.csv
 
 bench: $(STAMP)
 	$(BIN)/python scripts/bench.py $(DATA)

@@ -7,6 +7,8 @@ estimates are compared with the simulator's truth:
 * ``paper``: the paper's chain, section 2 (eqs. 15-27, :func:`lidarcal.turntable.fit_paper`);
 * ``rigid``: the rigid rotation model fitted to the samples (:func:`~lidarcal.turntable.fit_rigid`);
 * ``joint``: the joint fit of :mod:`lidarcal.joint` (scan points + stripe centres);
+* ``joint_exact``: the joint fit with the ranges taken as exact (``ranging=False``:
+  no range offset or dark-square terms, :mod:`lidarcal.ranging`);
 * ``joint_planes``: the same, also refining both board poses with their corners;
 * ``scan_only``: the Zhang-Pless style point-on-plane calibration: scan points
   must lie on the camera's board planes; with the turntable's rigid model it is
@@ -26,7 +28,17 @@ Scans: :func:`lidarcal.synthetic.simulate_scans`, the full ray-cast LiDAR
 model (beam footprint, mixed pixels at depth edges, Gaussian range noise of
 ``range_noise_mm``, spurious/dropped returns as the preset says). The
 pipeline's own segmentation (:func:`lidarcal.scan.split_v`) and constrained
-line fit (:func:`lidarcal.scan.fit_v_lines`) run on them.
+line fit (:func:`lidarcal.scan.fit_v_lines`) run on them. The setting's
+ranging errors (``range_offset_mm``, ``dark_extra_mm``, ``range_quantum_mm``,
+the simulator's :class:`~lidarcal.synthetic.RigConfig` fields) enter there,
+in the scan model itself; the joint fit tells the returns from black squares by
+the boards' ``blackness`` (here from the truth, :func:`board_blackness_truth`).
+
+Ranging sweep (:func:`ranging_settings`, ``python -m lidarcal.study --ranging
+OUT.csv``): range offset x dark-square extra, solved by :data:`RANGING_METHODS`
+(the joint fit without the ranging model is ``joint_exact``);
+:func:`summarise_ranging` adds what the ranging model recovered (estimates,
+spread, reported sigma, 2-sigma coverage), :func:`plot_ranging` draws it.
 
 Board corners: the true inner corners, moved as a whole by a small random
 tilt (``corner_tilt_deg`` per in-plane axis, about the corners' centre) and
@@ -82,6 +94,8 @@ from .stripe import camera_lines_from_centres
 from .turntable import axis_distance_mm, fit_paper, fit_rigid
 
 METHODS = ("samples", "paper", "rigid", "joint", "joint_planes", "scan_only")
+#: the ranging sweep's methods: ``joint_exact`` is the joint fit without the ranging model
+RANGING_METHODS = ("samples", "paper", "rigid", "joint_exact", "joint")
 QUANTITIES = ("centre_mm", "z_axis_deg", "x_axis_deg")
 SWEPT = ("range_noise_mm", "stripe_noise_px", "n_positions")
 PAPER_SPAN_DEG = 21.5  # the paper: 87 positions 0.25 deg apart
@@ -92,7 +106,10 @@ class StudySetting:
     """One cell of the study: rig preset, sweep layout and noise levels.
 
     ``range_noise_mm`` None keeps the preset's. The sweep spans ``span_deg``
-    with ``n_positions`` evenly spaced positions.
+    with ``n_positions`` evenly spaced positions. ``range_offset_mm``,
+    ``dark_extra_mm``, ``range_quantum_mm``: the LiDAR's systematic ranging
+    errors, as the simulator's :class:`~lidarcal.synthetic.RigConfig` fields
+    (0: exact ranges).
     """
 
     name: str = "paper-like"
@@ -105,6 +122,9 @@ class StudySetting:
     corner_noise_px: float = 0.03
     corner_tilt_deg: float = 0.003
     corner_offset_mm: float = 0.01
+    range_offset_mm: float = 0.0
+    dark_extra_mm: float = 0.0
+    range_quantum_mm: float = 0.0
     methods: tuple[str, ...] = METHODS
 
     @property
@@ -147,6 +167,30 @@ def stripe_centres_truth(camera: CameraModel, board, laser: Plane, lidar_pose, r
     return np.column_stack([t, other]) if axis == 0 else np.column_stack([other, t])
 
 
+def board_blackness_truth(camera: CameraModel, rect, pad_px: int = 2) -> dict:
+    """A noise-free ``blackness`` crop of one board (1 on black squares, 0 elsewhere).
+
+    What :func:`lidarcal.board.board_blackness` reads from the bright image,
+    here from the truth: every pixel of the board's bounding box is cut with
+    the board plane (eq. 5) and the square it lands on is looked up. Lets the
+    joint fit tell the returns from black squares (:func:`lidarcal.ranging.black_parity`).
+    Returns the :class:`~lidarcal.board.BoardView` fields ``blackness`` and
+    ``blackness_origin``.
+    """
+    from .camera import backproject_to_plane
+    from .synthetic.scene import BLACK
+
+    px = project_points(camera, rect.corners())
+    w, h = camera.image_size
+    x0, y0 = np.clip(np.floor(px.min(0)).astype(int) - pad_px, 0, [w - 1, h - 1])
+    x1, y1 = np.clip(np.ceil(px.max(0)).astype(int) + pad_px, 0, [w - 1, h - 1])
+    xx, yy = np.meshgrid(np.arange(x0, x1 + 1), np.arange(y0, y1 + 1))
+    grid = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
+    X = backproject_to_plane(camera, grid, Plane.from_normal_point(rect.normal, rect.origin))
+    black = (rect.material(X) == BLACK).astype(float).reshape(xx.shape)
+    return {"blackness": black, "blackness_origin": (int(x0), int(y0))}
+
+
 @dataclass
 class SimulatedRig:
     """A rig's truth and the section-1/2 result built from simulated observations."""
@@ -164,6 +208,9 @@ def simulate_rig(seed: int, setting: StudySetting) -> SimulatedRig:
                                      psi_step_deg=float(setting.psi_step_deg))
     if setting.range_noise_mm is not None:
         rig = rig.with_(range_noise_mm=float(setting.range_noise_mm))
+    rig = rig.with_(range_offset_mm=float(setting.range_offset_mm),
+                    dark_extra_mm=float(setting.dark_extra_mm),
+                    range_quantum_mm=float(setting.range_quantum_mm))
     truth = make_truth(seed, rig, with_discs=False, with_intrinsics=False)
     rng = np.random.default_rng([seed, 7919])
     camera = CameraModel(np.asarray(truth.K, float), np.asarray(truth.dist, float), rig.image_size,
@@ -177,7 +224,8 @@ def simulate_rig(seed: int, setting: StudySetting) -> SimulatedRig:
         rot = Rotation.from_rotvec(tilt[0] * b.rect.e_u + tilt[1] * unit(b.rect.e_v)).as_matrix()
         X = c + (X - c) @ rot.T + rng.normal(0, setting.corner_offset_mm) * b.rect.normal
         px = project_points(camera, X)
-        views.append(board_view(camera, px + rng.normal(0, setting.corner_noise_px, px.shape), spec))
+        view = board_view(camera, px + rng.normal(0, setting.corner_noise_px, px.shape), spec)
+        views.append(replace(view, **board_blackness_truth(camera, b.rect)))
     order = np.argsort([v.centroid_px[0] for v in views])  # as find_v_boards: left to right
     views = [views[i] for i in order]
     tboards = [truth.boards[i] for i in order]
@@ -234,6 +282,8 @@ def _fit(method: str, result: CalibrationResult):
         return result.rigid_model
     if method == "joint":
         return fit_joint(result)
+    if method == "joint_exact":
+        return fit_joint(result, ranging=False)
     if method == "joint_planes":
         return fit_joint(result, fit_planes=True)
     if method == "scan_only":  # the classic point-on-plane calibration: no jitter model
@@ -273,6 +323,12 @@ def evaluate_rig(sim: SimulatedRig, methods: Sequence[str] = METHODS) -> pd.Data
         if sig is not None:
             common["sigma_axis_direction_deg"] = float(sig["axis_direction_deg"].iloc[0])
             common["n_warnings"] = len(m.warnings)
+            if m.ranging is not None:  # the estimated ranging terms (mm)
+                r = m.ranging
+                common.update(est_offset_mm=r.offset_mm, sigma_offset_mm=r.offset_sigma_mm)
+                if "dark_extra" in r.estimated:
+                    common.update(est_dark_extra_mm=r.dark_extra_mm,
+                                  sigma_dark_extra_mm=r.dark_extra_sigma_mm)
         for j, (i, e, t) in enumerate(zip(idx, est, true)):
             row = {**common, "index": i, "psi_deg": float(psi[j]), **pose_error(e, t)}
             if sig is not None:
@@ -424,23 +480,107 @@ def small_settings() -> list[StudySetting]:
             replace(b, name="positions=5", n_positions=5)]
 
 
+def ranging_settings(offsets_mm: Sequence[float] = (0.0, 8.0, 20.0),
+                     dark_extras_mm: Sequence[float] = (0.0, 3.0, 6.0),
+                     base: StudySetting | None = None) -> list[StudySetting]:
+    """The ranging sweep: every (range offset, dark-square extra) pair on the baseline rig
+    (22 positions), solved by :data:`RANGING_METHODS`. Named ``offset=8mm dark=6mm``."""
+    b = replace(base or StudySetting(), methods=RANGING_METHODS)
+    return [replace(b, name=f"offset={o:g}mm dark={d:g}mm", range_offset_mm=float(o),
+                    dark_extra_mm=float(d)) for o in offsets_mm for d in dark_extras_mm]
+
+
+def summarise_ranging(df: pd.DataFrame, k: float = 2.0) -> pd.DataFrame:
+    """:func:`summarise` per (setting, method) plus the true ranging terms and what the joint
+    fit recovered: mean estimate, its rig-to-rig spread, mean reported 1-sigma and the share
+    of rigs whose estimate is within ``k`` sigmas of the truth (``*_coverage``). The dark
+    extra's columns are empty where the fit did not estimate it."""
+    out = summarise(df)
+    if out.empty:
+        return out
+    ok = df[df["method"] != "failed"]
+    g = ok.groupby(["setting", "method"])
+    for col in ("range_offset_mm", "dark_extra_mm"):
+        out[col] = g[col].first().reindex(out.index)
+    per_rig = ok.groupby(["setting", "method", "seed"]).first()
+    for est, sig, true, name in (("est_offset_mm", "sigma_offset_mm", "range_offset_mm", "offset"),
+                                 ("est_dark_extra_mm", "sigma_dark_extra_mm", "dark_extra_mm",
+                                  "dark_extra")):
+        if est not in per_rig:
+            continue
+        r = per_rig.dropna(subset=[est])
+        gr = r.groupby(["setting", "method"])
+        out[f"{name}_est_mm"] = gr[est].mean().reindex(out.index)
+        out[f"{name}_spread_mm"] = gr[est].std().reindex(out.index)
+        out[f"{name}_sigma_mm"] = gr[sig].mean().reindex(out.index)
+        inside = (r[est] - r[true]).abs() <= k * r[sig]
+        out[f"{name}_coverage"] = inside.groupby(["setting", "method"]).mean().reindex(out.index)
+    return out
+
+
+def plot_ranging(summary: pd.DataFrame, methods: Sequence[str] = ("rigid", "joint_exact", "joint")):
+    """Mean true centre error of each method against the range offset, one line per dark
+    extra (left), and the joint fit's offset and dark-extra estimates against the truth with
+    their mean reported 2-sigma (right); the ranging sweep's summary
+    (:func:`summarise_ranging`)."""
+    import matplotlib.pyplot as plt
+
+    s = summary.reset_index()
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 3.8), constrained_layout=True)
+    styles = dict(zip(sorted(s["dark_extra_mm"].unique()), ("-", "--", ":", "-.")))
+    for i, m in enumerate(methods):
+        for dark, ls in styles.items():
+            d = s[(s.method == m) & (s.dark_extra_mm == dark)].sort_values("range_offset_mm")
+            if len(d):
+                ax.plot(d["range_offset_mm"], d["centre_mm"], "o", ls=ls, color=f"C{i}",
+                        label=f"{m}, dark {dark:g} mm")
+    ax.set_yscale("log")
+    ax.set_xlabel("range offset (mm)")
+    ax.set_ylabel("mean true centre error (mm)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=len(methods))
+    j = s[s.method == "joint"]
+    for col, name, mk in (("range_offset_mm", "offset", "o"), ("dark_extra_mm", "dark_extra", "s")):
+        if f"{name}_est_mm" in j:
+            d = j.dropna(subset=[f"{name}_est_mm"])
+            bx.errorbar(d[col] + (0.3 if name == "dark_extra" else 0.0), d[f"{name}_est_mm"],
+                        yerr=2 * d[f"{name}_sigma_mm"], fmt=mk, capsize=3, label=f"{name} (+-2 sigma)")
+    lim = [0, max(s["range_offset_mm"].max(), s["dark_extra_mm"].max()) + 1]
+    bx.plot(lim, lim, "k-", lw=0.8, label="truth")
+    bx.set_xlabel("true term (mm)")
+    bx.set_ylabel("joint fit's estimate (mm)")
+    bx.grid(True, alpha=0.3)
+    bx.legend(fontsize=8)
+    return fig
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m lidarcal.study", description=__doc__.splitlines()[0])
     ap.add_argument("out", nargs="?", help="CSV file for the per-position rows")
     ap.add_argument("--full", metavar="OUT.csv", help="the full study (all sweeps, --rigs rigs each)")
+    ap.add_argument("--ranging", metavar="OUT.csv",
+                    help="the ranging sweep (range offset x dark-square extra, --rigs rigs each, "
+                         "default 8)")
+    ap.add_argument("--offsets", type=float, nargs="+", default=[0.0, 8.0, 20.0], metavar="MM",
+                    help="range offsets of the ranging sweep (mm; default 0 8 20)")
+    ap.add_argument("--darks", type=float, nargs="+", default=[0.0, 3.0, 6.0], metavar="MM",
+                    help="dark-square extras of the ranging sweep (mm; default 0 3 6)")
     ap.add_argument("--rigs", type=int, default=None, help="rigs per setting (default 50 full, 2 small)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     args = ap.parse_args(argv)
-    out = args.full or args.out
-    if out is None:
-        ap.error("give OUT.csv (small study) or --full OUT.csv")
-    settings = sweep_settings() if args.full else small_settings()
-    n = args.rigs or (50 if args.full else 2)
+    if sum(x is not None for x in (args.full, args.ranging, args.out)) != 1:
+        ap.error("give one of OUT.csv (small study), --full OUT.csv, --ranging OUT.csv")
+    out = args.full or args.ranging or args.out
+    if args.ranging:
+        settings, n = ranging_settings(args.offsets, args.darks), args.rigs or 8
+    else:
+        settings = sweep_settings() if args.full else small_settings()
+        n = args.rigs or (50 if args.full else 2)
     df = run_study(settings, n, args.seed, workers=args.workers, progress=sys.stderr.isatty())
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     df.to_csv(out, index=False)
-    summary = summarise(df)
+    summary = summarise_ranging(df) if args.ranging else summarise(df)
     summary.to_csv(summary_path(out))
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(summary.to_string(float_format=lambda v: f"{v:.4g}"))

@@ -412,3 +412,36 @@ def test_uncertainty_summary_counts_coverage():
     assert uncertainty_summary({"poses": []}, truth) == ""
     cal["sigma"]["angle_jitter_deg"] = 0.0031
     assert "encoder jitter 0.0031 deg" in uncertainty_summary(cal, truth)
+
+
+def _ranging_block(src: str) -> str:
+    i = src.index("=== Ranging model of the LiDAR")
+    return src[i:src.index("\n=", i + 4) if "\n=" in src[i + 4:] else len(src)]
+
+
+def test_report_states_ranging_terms(tmp_path):
+    """With a calibration.json ``ranging`` block the report tables both terms with their
+    1-sigma next to the pose function; without one it says the ranges were taken as exact."""
+    from lidarcal.ranging import RangingModel
+
+    cal, truth, meas, *_ = _fake(5)
+    ds = _fake_dataset(tmp_path)
+    rm = RangingModel(8.137, 0.162, 5.71, 0.43, estimated=("offset", "dark_extra"),
+                      determined=("offset", "dark_extra"))
+    src = build_report_source(ReportInputs(ds, {**cal, "method": "joint", "ranging": rm.to_dict()},
+                                           meas, truth), tmp_path, figures=False)
+    block = _ranging_block(src)
+    assert src.index("Table 1: fitted pose function") < src.index("=== Ranging model")
+    assert "#table(columns: 4" in block
+    assert "[zero offset], [+8.14], [0.16], [from the data]" in block
+    assert "[dark-square extra], [+5.71], [0.43], [from the data]" in block
+    assert "taken as exact" not in block and "1-sigma include their uncertainty" in block
+    import typst
+
+    (tmp_path / "r.typ").write_text(src)
+    typst.compile(str(tmp_path / "r.typ"), output=str(tmp_path / "r.pdf"), root=str(tmp_path))
+    assert (tmp_path / "r.pdf").read_bytes()[:5] == PDF_MAGIC
+    src = build_report_source(ReportInputs(ds, cal, meas, truth), tmp_path, figures=False)
+    block = _ranging_block(src)
+    assert "ranges taken as exact" in block and "#table" not in block
+    assert "include their uncertainty" not in block

@@ -353,6 +353,7 @@ def _section2(inp: ReportInputs, fig: _Figures, t1: pd.DataFrame, cmp: dict) -> 
     out.append("'vs samples' is the paper's metric (the function against the very samples it was "
                f"fitted to, {len(cal.get('samples', []))} positions here, 87 in the paper); "
                "'vs truth' is the true error, only a simulator can give it.\n")
+    out.append(_ranging_block(cal))
     if cmp:
         series = {k: v for k, v in cmp.items()}
         psi = next(iter(cmp.values()))["psi_deg"].to_numpy()
@@ -361,6 +362,18 @@ def _section2(inp: ReportInputs, fig: _Figures, t1: pd.DataFrame, cmp: dict) -> 
         out.append(fig("histograms", lambda: plots.plot_residual_histograms(series),
                        "Histograms of the per-position differences.", width="100%"))
     return "\n".join(out)
+
+
+def _ranging_block(cal: dict) -> str:
+    """The LiDAR's ranging terms (zero offset, dark-square extra) with their 1-sigma, next to
+    the pose function (:func:`lidarcal.ranging.ranging_text`); without a calibration.json
+    ``ranging`` block (the rigid or paper method, older files) the ranges were taken as exact."""
+    from ..ranging import ranging_text
+
+    rng = cal.get("ranging")
+    note = ("\nThe pose function was fitted with these terms; its 1-sigma include their "
+            "uncertainty.\n" if rng else "")
+    return "=== Ranging model of the LiDAR\n" + ranging_text(rng, fmt="typst") + note
 
 
 def _measurement_warnings(meas: dict | None) -> list[str]:
