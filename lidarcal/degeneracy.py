@@ -27,6 +27,9 @@ UNDETERMINED_MM = 50.0
 #: Boards count as all parallel when the second singular value of their stacked normals is below
 #: this share of the first (about 3 deg of spread); as sharing one direction when the third is.
 PARALLEL_LIMIT = 0.05
+#: an axis whose squared component in the undetermined directions exceeds this has sigma None
+#: (a component above ~3 %; numerical mixing of exact degeneracies stays below 1e-5)
+AXIS_SHARE = 1e-3
 #: Views needed at all (each view constrains two of the six pose parameters).
 MIN_VIEWS = 3
 
@@ -82,7 +85,8 @@ def pose_uncertainty(information: np.ndarray, noise_scale: float, lever_mm: floa
                      ) -> Uncertainty:
     """Eigen-analysis of the pose information, rotations scaled by ``lever_mm`` (the board
     points' RMS range) so both kinds are mm: an eigen-direction whose 1-sigma exceeds
-    ``limit_mm`` is undetermined; an axis with a share (> 5 %) in one has sigma None.
+    ``limit_mm`` is undetermined; an axis with a share above :data:`AXIS_SHARE` in one has
+    sigma None.
     ``unobservable`` directions (from :func:`unobservable_directions`) are removed from the
     information first, so they come out undetermined."""
     S = np.diag([lever_mm] * 3 + [1.0] * 3)
@@ -109,10 +113,13 @@ def pose_uncertainty(information: np.ndarray, noise_scale: float, lever_mm: floa
     good = ~bad
     cov_y = (V[:, good] * (sig[good] ** 2)) @ V[:, good].T
     cov = Si @ cov_y @ Si  # y = S x  ->  cov_x = S^-1 cov_y S^-1: (omega rad, T mm)
+    # an axis is undetermined when it has a real component (above ~3 %, share 1e-3) in an
+    # undetermined direction: its sigma would be unbounded, never a confident number
     share = np.sum(V[:, bad] ** 2, axis=1) if bad.any() else np.zeros(6)
+    lost = share > AXIS_SHARE
     sd = np.sqrt(np.diag(cov))
-    rot = [None if share[i] > 0.05 else float(np.degrees(sd[i])) for i in range(3)]
-    tr = [None if share[3 + i] > 0.05 else float(sd[3 + i]) for i in range(3)]
+    rot = [None if lost[i] else float(np.degrees(sd[i])) for i in range(3)]
+    tr = [None if lost[3 + i] else float(sd[3 + i]) for i in range(3)]
     return Uncertainty(rot, tr, cov, und, lever_mm)
 
 

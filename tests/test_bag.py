@@ -127,9 +127,10 @@ def test_ros2_png_import_then_calibrate_matches_the_folder(bags, rig_folder, tmp
     errs = {k: pose_errors({p["index"]: Pose.from_dict(p) for p in c["poses"]}, truth)
             for k, c in cals.items()}
     assert len(errs["bag"]) == 6
-    # identical inputs: identical true errors
+    # the same inputs up to the LaserScan's float32 beam angles (~1e-7 relative): the same
+    # true errors to 1e-4 mm / deg (measured differences ~3e-6), far below any noise
     for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):
-        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-6)
+        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-4)
     assert errs["bag"]["centre_mm"].mean() < 1.0  # 6 positions, 0.25 deg apart
 
 
