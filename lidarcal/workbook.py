@@ -134,6 +134,46 @@ def find_notebooks(folder: Path, select: Sequence[str] | None = None) -> list[Pa
     return books
 
 
+#: What a numbered notebook runs on (its metadata ``lidarcal.input``): ``dataset``, a turntable
+#: dataset folder (docs/dataset-format.md; the default), or ``view-pairs``, a folder of photo +
+#: scan pairs with camera.json (the one-board method, ``lidarcal planes``, notebook 08).
+INPUT_KINDS = ("dataset", "view-pairs")
+
+
+def notebook_input(path: Path) -> str:
+    """The input kind a numbered notebook is written for (see :data:`INPUT_KINDS`)."""
+    import nbformat
+
+    kind = nbformat.read(path, as_version=4).metadata.get("lidarcal", {}).get("input", "dataset")
+    if kind not in INPUT_KINDS:
+        raise DatasetError(path, f"metadata lidarcal.input is {kind!r}; expected one of "
+                                 f"{', '.join(INPUT_KINDS)}")
+    return kind
+
+
+def input_kind(folder: Path) -> str:
+    """``dataset`` for a folder with dataset.json, ``view-pairs`` for photo + scan pairs with
+    camera.json (checked by reading the pairs); otherwise a one-line error naming the folder."""
+    folder = Path(folder)
+    if (folder / "dataset.json").is_file() or not (folder / "camera.json").is_file():
+        return "dataset"  # load_dataset names what is missing
+    from .io.pairs import read_view_pairs
+
+    read_view_pairs(folder)
+    return "view-pairs"
+
+
+def summary_line(folder: Path, kind: str) -> tuple[str, str]:
+    """The workbook's subtitle and one-line description of its input."""
+    if kind == "dataset":
+        s = summarise_dataset(load_dataset(folder))
+        return s.name, s.line()
+    from .io.pairs import read_view_pairs
+
+    return Path(folder).name, f"{Path(folder).name}: {len(read_view_pairs(folder))} photo + " \
+                              "scan pairs (one flat board)"
+
+
 def check_parameters_cell(nb, path: Path) -> None:
     """A workbook notebook has a code cell tagged ``parameters`` that assigns ``DATASET``."""
     for cell in nb.cells:
@@ -338,8 +378,8 @@ def build(notebooks: Sequence[Path], out_pdf: Path, *, dataset: Path | None = No
 
     from .report import compile_typst
 
-    ds = load_dataset(dataset) if dataset is not None else None
-    summary = summarise_dataset(ds) if ds is not None else None
+    kind = input_kind(dataset) if dataset is not None else None
+    described = summary_line(dataset, kind) if dataset is not None else None
     work = Path(tempfile.mkdtemp(prefix="lidarcal_workbook_"))
     try:
         parts, listing = [], []
@@ -348,7 +388,8 @@ def build(notebooks: Sequence[Path], out_pdf: Path, *, dataset: Path | None = No
             done = work / path.name
             if execute:
                 log(f"executing {path.name}")
-                execute_notebook(path, done, None if ds is None else ds.root, timeout)
+                execute_notebook(path, done, None if dataset is None else Path(dataset).resolve(),
+                                 timeout)
                 nb = nbformat.read(done, as_version=4)
             else:
                 nb = nbformat.read(path, as_version=4)
@@ -359,8 +400,7 @@ def build(notebooks: Sequence[Path], out_pdf: Path, *, dataset: Path | None = No
             parts.append(f"// ---- {path.name}\n#pagebreak(weak: true)\n{body}\n")
             listing.append((path.name, "executed" if execute else "as stored",
                             time.perf_counter() - t0))
-        about = summary.line() if summary is not None else "notebooks as stored"
-        subtitle = summary.name if summary is not None else Path(notebooks[0]).parent.name
+        subtitle, about = described or (Path(notebooks[0]).parent.name, "notebooks as stored")
         typ = work / "workbook.typ"
         typ.write_text(_typst_source(parts, listing, title, subtitle, about))
         if keep is not None:
@@ -375,8 +415,19 @@ def write_workbook(dataset: str | os.PathLike, out_pdf: str | os.PathLike, *,
                    select: Sequence[str] | None = None, timeout: int = DEFAULT_TIMEOUT_S,
                    keep: str | os.PathLike | None = None,
                    log: Callable[[str], None] = print) -> Path:
-    """``lidarcal workbook``: the numbered notebooks run on ``dataset``, as one PDF."""
-    ds = load_dataset(dataset)  # bad input fails here, before any kernel starts
+    """``lidarcal workbook``: the numbered notebooks written for ``dataset``'s kind (a turntable
+    dataset: 01-07; photo + scan pairs: 08; :data:`INPUT_KINDS`) run on it, as one PDF."""
+    root = Path(dataset)
+    kind = input_kind(root)
+    if kind == "dataset":
+        root = load_dataset(root).root  # bad input fails here, before any kernel starts
     books = find_notebooks(Path(notebook_dir) if notebook_dir else default_notebook_dir(), select)
-    return build(books, Path(out_pdf), dataset=ds.root, timeout=timeout,
+    other = [b for b in books if notebook_input(b) != kind]
+    if select and other:
+        raise DatasetError(root, f"{', '.join(b.name for b in other)} runs on another kind of "
+                                 f"input than this {kind} folder; leave it out of --notebooks")
+    books = [b for b in books if b not in other]
+    if not books:
+        raise DatasetError(root, f"no numbered notebook runs on a {kind} folder")
+    return build(books, Path(out_pdf), dataset=root, timeout=timeout,
                  keep=None if keep is None else Path(keep), log=log)

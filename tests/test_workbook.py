@@ -134,3 +134,18 @@ def test_a_failing_notebook_is_one_line_naming_it_and_its_cell(small_dataset, tm
     assert line.startswith(f"error: {tmp_path / '01_fails.ipynb'}: code cell 3 (id ")
     assert "raised ValueError: no V in scan 3; run this notebook in JupyterLab (make lab)" in line
     assert str(small_dataset) in line and not (tmp_path / "x.pdf").exists()
+
+
+def test_notebooks_are_chosen_by_their_input_kind(tmp_path):
+    """A turntable dataset runs 01-07; notebook 08 (photo + scan pairs) is not run on it, and
+    naming it for a dataset is a one-line error."""
+    from lidarcal.workbook import input_kind, notebook_input
+
+    kinds = {p.stem[:2]: notebook_input(p) for p in NOTEBOOKS}
+    assert kinds["08"] == "view-pairs" and all(k == "dataset" for n, k in kinds.items() if n < "08")
+    assert input_kind(REPO / "data" / "paper_rig") == "dataset"
+    assert input_kind(REPO / "data" / "real_tapas") == "view-pairs"
+    r = lidarcal("workbook", REPO / "data" / "paper_rig", "--out", tmp_path / "x.pdf",
+                 "--notebooks", "08")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "08_real_data" in r.stderr
+    assert not (tmp_path / "x.pdf").exists()
