@@ -73,18 +73,25 @@ def truth_E(truth: dict, index: int) -> np.ndarray:
     return intersect_planes(b1, b2, truth_laser_plane(truth_poses(truth)[index]))
 
 
-def truth_lines(truth: dict, index: int, boards: list[Plane] | None = None
+def truth_lines(truth: dict, index: int, order: list[int] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Section 1.3 from the truth at one position: E (3,), the stripe directions l (2, 3)
-    (``l_k = n_k x n_L``, eq. 4's plane with board ``k``) and alpha (rad). ``boards``: the
-    truth boards in the estimate's order (:func:`match_planes`); default truth.json's order.
-    The sign of each ``l_k`` is left as the cross product gives it (compare as lines)."""
-    b = truth_board_planes(truth)[:2] if boards is None else boards
+    """Section 1.3 from the truth at one position: E (3,), the stripe rays l (2, 3) and alpha
+    (rad). ``l_k = n_k x n_L`` (board ``k``'s plane with the truth laser plane) is oriented
+    from E towards board ``k``'s outline centre, as the stripe runs; ``alpha = arccos(l_0 .
+    l_1)``. ``order``: truth.json's board indices in the estimate's order
+    (:func:`match_planes`); default truth.json's order."""
+    order = [0, 1] if order is None else list(order)
+    planes = truth_board_planes(truth)
     laser = truth_laser_plane(truth_poses(truth)[index])
-    E = intersect_planes(b[0], b[1], laser)
-    l = np.vstack([np.cross(pl.normal, laser.normal) for pl in b])
-    l /= np.linalg.norm(l, axis=1)[:, None]
-    return E, l, float(np.arccos(np.clip(abs(l[0] @ l[1]), -1.0, 1.0)))
+    E = intersect_planes(planes[order[0]], planes[order[1]], laser)
+    l = []
+    for k in order:
+        v = np.cross(planes[k].normal, laser.normal)
+        v /= np.linalg.norm(v)
+        centre = np.mean(np.asarray(truth["boards"][k]["outline_mm"], float), axis=0)
+        l.append(v if (centre - E) @ v >= 0 else -v)
+    l = np.vstack(l)
+    return E, l, float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
 
 
 def v_fit_crlb(points1: np.ndarray, points2: np.ndarray, normal1: np.ndarray, offsets: tuple[

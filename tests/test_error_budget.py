@@ -8,7 +8,14 @@ import json
 
 import numpy as np
 
-from lidarcal.evaluate import truth_poses, v_fit_crlb
+from lidarcal.evaluate import (
+    angle_between_deg,
+    match_planes,
+    truth_board_planes,
+    truth_lines,
+    truth_poses,
+    v_fit_crlb,
+)
 from lidarcal.scan import fit_v_lines
 
 
@@ -92,6 +99,13 @@ def test_wide_rig_samples_sit_at_the_bound(tmp_path):
         b = v_fit_crlb(pts[p.segments.first], pts[p.segments.second], ll.line1.normal,
                        (ll.line1.offset, ll.line2.offset), ll.alpha, ll.sign, sigma)
         err = np.linalg.norm(p.pose.T - tp[p.index].T)
+        # the camera side against truth_lines: same rays (oriented alike), alpha and E close
+        cl = p.camera_lines
+        E, lt, alpha = truth_lines(truth, p.index,
+                                   match_planes(list(cl.board_planes), truth_board_planes(truth)))
+        assert max(angle_between_deg(a, b) for a, b in zip(cl.l, lt)) < 0.1
+        assert abs(np.degrees(cl.alpha - alpha)) < 0.1
+        assert np.linalg.norm(cl.E - E) < 2.0
         ratios.append((err / b["centre_rms_mm"]) ** 2)
     assert len(ratios) == 8
     assert 0.15 < np.mean(ratios) < 3.5, ratios
