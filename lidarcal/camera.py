@@ -182,19 +182,27 @@ def grid_prediction_scaled(corners: np.ndarray, pattern_size: tuple[int, int],
     ok = np.ones((rows, cols), bool) if valid is None else np.asarray(valid).reshape(rows, cols)
     out = np.full((rows * cols, 2), np.nan)
     scale = np.full(rows * cols, np.nan)
+    # the least-squares operator depends only on which grid offsets are used: corners with
+    # the same neighbourhood (all interior ones of a clean board) share one pseudo-inverse
+    groups: dict[tuple, tuple[np.ndarray, list[int], list[np.ndarray]]] = {}
     for j in range(rows):
         for i in range(cols):
             j0, j1 = max(j - reach, 0), min(j + reach + 1, rows)
             i0, i1 = max(i - reach, 0), min(i + reach + 1, cols)
             jj, ii = np.mgrid[j0:j1, i0:i1]
             sel = ~((jj == j) & (ii == i)) & ok[j0:j1, i0:i1]
-            u, v = (ii[sel] - i).astype(float), (jj[sel] - j).astype(float)
-            if len(u) < 8:
+            if sel.sum() < 8:
                 continue
-            A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
-            coef, *_ = np.linalg.lstsq(A, P[j0:j1, i0:i1][sel], rcond=None)
-            out[j * cols + i] = coef[0]  # the map at (u, v) = (0, 0)
-            scale[j * cols + i] = np.sqrt(1.0 + np.linalg.pinv(A.T @ A)[0, 0])
+            uv = np.column_stack([ii[sel] - i, jj[sel] - j])
+            _, idx, ys = groups.setdefault(uv.tobytes(), (uv, [], []))
+            idx.append(j * cols + i)
+            ys.append(P[j0:j1, i0:i1][sel])
+    for uv, idx, ys in groups.values():
+        u, v = uv[:, 0].astype(float), uv[:, 1].astype(float)
+        A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+        # the map at (u, v) = (0, 0): the constant term of the least-squares fit
+        out[idx] = np.einsum("n,knd->kd", np.linalg.pinv(A)[0], np.stack(ys))
+        scale[idx] = np.sqrt(1.0 + np.linalg.pinv(A.T @ A)[0, 0])
     return out, scale
 
 

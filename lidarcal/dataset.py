@@ -370,6 +370,17 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
     """
     if colour not in ("gray", "max"):
         raise ValueError(f"colour must be 'gray' or 'max', got {colour!r}")
+    img = _decode_8bit(path)
+    if img.ndim == 3:
+        if colour == "max":
+            img = np.ascontiguousarray(img[:, :, :3].max(axis=2))
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return _checked_size(img, path, image_size)
+
+
+def _decode_8bit(path: Path) -> np.ndarray:
+    """``cv2.imread`` of an 8-bit image as stored (gray or BGR(A)); DatasetError otherwise."""
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "missing image; copy it again or drop this position")
@@ -378,13 +389,12 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
         raise DatasetError(path, "cannot be decoded as an image (corrupt or not a PNG)")
     if img.dtype != np.uint8:
         raise DatasetError(path, f"expected an 8-bit image, got {img.dtype}")
-    if img.ndim == 3:
-        if colour == "max":
-            img = np.ascontiguousarray(img[:, :, :3].max(axis=2))
-        else:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return img
+
+
+def _checked_size(img: np.ndarray, path: Path, image_size: tuple[int, int] | None) -> np.ndarray:
     if image_size is not None and (img.shape[1], img.shape[0]) != tuple(image_size):
-        raise DatasetError(path, f"image is {img.shape[1]}x{img.shape[0]}, expected "
+        raise DatasetError(Path(path), f"image is {img.shape[1]}x{img.shape[0]}, expected "
                                  f"{image_size[0]}x{image_size[1]} (camera.image_size)")
     return img
 
@@ -396,19 +406,12 @@ def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None,
     lights-on photo by the laser colour's excess over the other channels)."""
     if laser_colour == "gray":
         return read_image(path, image_size, colour="max")
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "missing image; copy it again or drop this position")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None or img.ndim == 2 or img.dtype != np.uint8:
-        return read_image(path, image_size, colour="max")
+    img = _decode_8bit(path)  # decoded once: a gray image is used as it is
+    if img.ndim == 2:
+        return _checked_size(img, path, image_size)
     from .stripe import laser_response
 
-    out = laser_response(img[:, :, :3], laser_colour)
-    if image_size is not None and (out.shape[1], out.shape[0]) != tuple(image_size):
-        raise DatasetError(path, f"image is {out.shape[1]}x{out.shape[0]}, expected "
-                                 f"{image_size[0]}x{image_size[1]} (camera.image_size)")
-    return out
+    return _checked_size(laser_response(img[:, :, :3], laser_colour), path, image_size)
 
 
 class ImagePrefetch:

@@ -51,8 +51,6 @@ from .stripe import (
     CameraLines,
     camera_lines,
     estimate_reflectance_ratio,
-    reflectance_ratio,
-    reflectance_samples,
 )
 from .turntable import fit_paper, fit_rigid
 
@@ -198,15 +196,6 @@ def _solve_task(task: tuple[Position, float | None]) -> PositionResult | Dataset
     return _solve_safe((pos, _WORKER["camera"], _WORKER["boards"], _WORKER["lidar"], rho))
 
 
-def _rho_samples_task(pos: Position) -> list:
-    """Reflectance samples of one stripe image (for :func:`dataset_reflectance_ratio`)."""
-    try:
-        img = _stripe_image(pos, _WORKER["camera"], _WORKER["lidar"].laser_colour)
-    except DatasetError:
-        return []  # unreadable: left to the per-position step, which reports it
-    return reflectance_samples(_WORKER["camera"], img, _WORKER["boards"])
-
-
 def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
     """The stored camera of dataset.json when present, else one calibrated from ``intrinsics/``."""
     if ds.camera is not None:
@@ -218,15 +207,17 @@ def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
 
 
 def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, BoardView],
-                              positions: list[Position], n_images: int = 5) -> float | None:
+                              positions: list[Position], n_images: int = 5,
+                              laser_colour: str = "auto") -> float | None:
     """The stripe's black/white reflectance ratio, pooled over a few positions spread over the
     sweep (a property of board and laser, the same at every position; see
     :func:`lidarcal.stripe.estimate_reflectance_ratio`). None when it cannot be seen; unreadable
-    images are left to the per-position step, which reports them."""
+    images are left to the per-position step, which reports them. ``laser_colour``: how
+    colour stripe images become the laser's response (``lidar.laser_colour``)."""
     images = []
     for k in _rho_picks(positions, n_images):
         try:
-            images.append(_stripe_image(positions[k], camera))
+            images.append(_stripe_image(positions[k], camera, laser_colour))
         except DatasetError:
             continue
     return estimate_reflectance_ratio(camera, images, boards) if images else None
@@ -280,13 +271,17 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     todo = [p for p in ds.positions if p.index not in skip]
     own = images is None
     if own:
-        images = ImagePrefetch(todo, ds.image_size)
+        images = ImagePrefetch(todo, ds.image_size, laser_colour=ds.lidar.laser_colour)
     try:
         camera, intr = camera_for(ds)
         boards = find_boards(ds, camera)
-        _WORKER["images"] = images.join()  # joined: no thread runs when the workers fork
+        _WORKER["images"] = images  # an image not decoded yet is read on demand
+        # the stripe's reflectance ratio (a few images) while the last images are decoded
+        rho = dataset_reflectance_ratio(camera, boards, todo,
+                                        laser_colour=ds.lidar.laser_colour)
+        images.join()  # joined: no thread runs when the workers fork
         return _calibrate(ds, camera, intr, boards, todo, skip, strict, method, progress,
-                          workers)
+                          workers, rho)
     finally:
         _WORKER.pop("images", None)
         if own:
@@ -310,24 +305,18 @@ def _worker_pool(workers: int, camera: CameraModel, boards: tuple[BoardView, Boa
 
 def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
                boards: tuple[BoardView, BoardView], todo: list[Position], skip: set[int],
-               strict: bool, method: str, progress: bool, workers: int | None
-               ) -> CalibrationResult:
+               strict: bool, method: str, progress: bool, workers: int | None,
+               rho: float | None) -> CalibrationResult:
     skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
     warnings: list[str] = []
     workers = workers or min(2, os.cpu_count() or 1)
     if workers > 1 and len(todo) > 4:
         # camera, boards and LiDAR spec go to each worker once (initializer), not with each task
         with _worker_pool(workers, camera, boards, ds.lidar) as ex:
-            picks = [todo[k] for k in _rho_picks(todo)]
-            got = list(ex.map(_rho_samples_task, picks))
-            samples = [s for ss in got if ss for s in ss]
-            rho = None if any(ss is None for ss in got) or not samples else \
-                reflectance_ratio(samples)
             chunk = max(1, min(2, len(todo) // (4 * workers)))  # small: little tail imbalance
             outcomes = list(_progress(ex.map(_solve_task, [(p, rho) for p in todo],
                                              chunksize=chunk), len(todo), progress))
     else:
-        rho = dataset_reflectance_ratio(camera, boards, todo)
         jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
         outcomes = [_solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
     results, failed = _apply_skip_policy(ds, todo, outcomes, strict)

@@ -49,8 +49,7 @@ def stripe_quality(pts: np.ndarray, n_rejected: int, fit_rms_px: float, width_px
     c = pts.mean(0)
     _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
     t_dir, n_dir = vt[0], vt[1]
-    ys, xs = np.nonzero(mask)
-    P = np.column_stack([xs + origin[0], ys + origin[1]]).astype(float) - c
+    P = _band_candidates(mask, origin, c, n_dir)
     band = np.abs(P @ n_dir) <= 2.0
     if not band.any():
         return q
@@ -65,6 +64,34 @@ def stripe_quality(pts: np.ndarray, n_rejected: int, fit_rms_px: float, width_px
     hit[tc] = True
     q["coverage"] = float((hit & board_bins).sum() / max(board_bins.sum(), 1))
     return q
+
+
+def _band_candidates(mask: np.ndarray, origin: tuple[int, int], c: np.ndarray,
+                     n_dir: np.ndarray, half: float = 2.0) -> np.ndarray:
+    """Image coordinates minus ``c`` (M, 2) of the mask's pixels near the line through ``c``
+    with unit normal ``n_dir``: a superset of those within ``half`` px of it.
+
+    Gathered along the line's dominant axis (a few pixels per column, or per row), not by
+    scanning the whole mask: the band is ``|(p - c) . n| <= half``, so at each column ``x``
+    it spans ``2 half / |n_y|`` rows about the line; one more row each side covers rounding.
+    """
+    x0, y0 = origin
+    H, W = mask.shape
+    along = 0 if abs(n_dir[1]) >= abs(n_dir[0]) else 1  # 0: one run of rows per column
+    na, nc = (n_dir[0], n_dir[1]) if along == 0 else (n_dir[1], n_dir[0])
+    ca, cc = (c[0] - x0, c[1] - y0) if along == 0 else (c[1] - y0, c[0] - x0)
+    n_along, n_cross = (W, H) if along == 0 else (H, W)
+    a = np.arange(n_along)
+    mid = cc - (a - ca) * na / nc  # the line's cross coordinate at each a
+    r = int(np.ceil(half / abs(nc))) + 1
+    b = np.floor(mid)[:, None].astype(int) + np.arange(-r, r + 2)[None, :]
+    a = np.broadcast_to(a[:, None], b.shape)
+    inside = (b >= 0) & (b < n_cross)
+    a, b = a[inside], b[inside]
+    xs, ys = (a, b) if along == 0 else (b, a)
+    sel = mask[ys, xs]
+    xs, ys = xs[sel], ys[sel]
+    return np.column_stack([xs + x0, ys + y0]).astype(float) - c
 
 
 def quality_problem(q: dict, gates: StripeGates = DEFAULT_GATES) -> str | None:

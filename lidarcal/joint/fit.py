@@ -312,16 +312,27 @@ def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None =
     return out
 
 
+def _rows_by_position_board(pos: np.ndarray, board: np.ndarray, n_positions: int):
+    """``rows(i, b)``: the indices where ``pos == i`` and ``board == b``, in their order
+    (one stable sort instead of a full-length mask per position and board)."""
+    key = 2 * np.asarray(pos) + np.asarray(board)
+    order = np.argsort(key, kind="stable")
+    cuts = np.searchsorted(key[order], np.arange(2 * n_positions + 1))
+    return lambda i, b: order[cuts[2 * i + b]:cuts[2 * i + b + 1]]
+
+
 def scan_coverage(data: JointData, model) -> np.ndarray:
     """Per position and board (N, 2): the span of the kept scan returns along the board's
     laser line over the span of its stripe centres (1: the scan covers what the camera sees
     of the line; NaN: too few points). Returns in the camera frame by ``model.pose``."""
     out = np.full((data.n_positions, 2), np.nan)
+    rays_of = _rows_by_position_board(data.stripe_pos, data.stripe_board, data.n_positions)
+    scan_of = _rows_by_position_board(data.scan_pos, data.scan_board, data.n_positions)
     for i in range(data.n_positions):
         p = model.pose(float(data.psi_deg[i]))
         for b in range(2):
-            ray = data.stripe_rays[(data.stripe_pos == i) & (data.stripe_board == b)]
-            xy = data.scan_xy[(data.scan_pos == i) & (data.scan_board == b)]
+            ray = data.stripe_rays[rays_of(i, b)]
+            xy = data.scan_xy[scan_of(i, b)]
             if len(ray) < 5 or len(xy) < 2:
                 continue
             n = data.board_R[b][:, 2]
