@@ -270,6 +270,7 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
         return _empty(return_info)
     c0, t0 = coarse
     transpose = abs(t0[0]) < abs(t0[1])
+    mask_img = msub  # in image axes, for the quality gate
     if transpose:  # sample by rows: swap axes, solve as by columns, swap back
         sub, msub = sub.T, msub.T
         bsub = None if bsub is None else bsub.T
@@ -288,7 +289,7 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
     if not return_info:
         return pts[keep]
     quality = stripe_quality(pts[keep], int((~keep).sum()), fit_rms, width, snr[keep],
-                             msub, (x_lo, y_lo))
+                             mask_img, (x_lo, y_lo))
     info = {"snr": snr[keep], "width_px": width, "noise_dn": noise, "rho": rho_used,
             "fit_rms_px": fit_rms, "n_rejected": int((~keep).sum()), "samples": samples,
             "quality": quality, "problem": quality_problem(quality)}

@@ -114,3 +114,25 @@ def test_dataset_laser_colour_key(small_dataset, tmp_path) -> None:
     (ds / "dataset.json").write_text(json.dumps(raw))
     with pytest.raises(DatasetError, match="dataset.json.*'lidar.laser_colour' must be one of"):
         load_dataset(ds)
+
+
+@pytest.mark.parametrize("seed,slope", [(3, 0.25), (4, -0.6)])
+def test_steep_stripe_covers_the_board(seed, slope) -> None:
+    """A steep stripe (sampled by rows) is judged on the mask in image axes: it crosses the
+    whole board, so its coverage is near 1 and it passes the gates (a transposed mask in the
+    gate gave it a share of a wrong region)."""
+    img, f = _lit_board(seed, 0.0, -100.0)  # the lit board without the laser in the crop
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:H, 0:W].astype(float)
+    g = lambda yy: W / 2 + slope * (yy - H / 2)
+    d = (x - g(y)) / np.sqrt(1 + slope**2)
+    laser = 600.0 * np.exp(-0.5 * (d / 1.5) ** 2)
+    red = img[..., 2].astype(float) + laser + rng.normal(0, 2.0, laser.shape)
+    img[..., 2] = np.clip(np.rint(red), 0, 255).astype(np.uint8)
+    mask = np.zeros((H, W), bool)
+    mask[30:H - 30, 60:W - 60] = True
+    pts, info = stripe_centres(laser_response(img, "red"), mask, return_info=True)
+    assert info["problem"] is None, info["problem"]
+    assert info["quality"]["coverage"] > 0.9
+    err = (pts[:, 0] - g(pts[:, 1])) / np.sqrt(1 + slope**2)
+    assert abs(err.mean()) < 0.05 and err.std() < 0.15
