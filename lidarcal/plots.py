@@ -191,12 +191,11 @@ def plot_scan_split(points_xy: np.ndarray, first: np.ndarray, second: np.ndarray
             ax.annotate("LiDAR", (0, 0), textcoords="offset points", xytext=(4, 4), fontsize=8)
         else:
             v = p[s1 | s2] if (s1 | s2).any() else p[ok]
-            if len(v):
-                lo, hi = v.min(0), v.max(0)
-                m = 0.1 * (hi - lo).max() + 5
-                ax.set_xlim(lo[0] - m, hi[0] + m)
-                ax.set_ylim(lo[1] - m, hi[1] + m)
-        ax.set_aspect("equal", adjustable="datalim")
+            if len(v):  # a square window on the V (equal spans: the equal aspect keeps the limits)
+                c, half = (v.min(0) + v.max(0)) / 2, 0.6 * np.ptp(v, axis=0).max() + 5
+                ax.set_xlim(c[0] - half, c[0] + half)
+                ax.set_ylim(c[1] - half, c[1] + half)
+        ax.set_aspect("equal", adjustable="box" if k == 1 else "datalim")
         ax.set_xlabel("x_L (mm)")
         ax.set_ylabel("y_L (mm)")
         ax.grid(alpha=0.3)
