@@ -608,3 +608,19 @@ def plot_table2(diameters_mm: np.ndarray, reference_mm: np.ndarray | float,
     ax.legend(fontsize=8)
     ax.set_title(title, fontsize=10)
     return fig
+
+
+def plot_angle_corrections(true_error_deg: np.ndarray, correction_deg: np.ndarray,
+                           title: str = "per-position angle corrections") -> Figure:
+    """The joint fit's per-position turntable angle corrections against the true angle errors
+    (mean removed: the fit cannot see a common offset), with the line of equality."""
+    t = np.asarray(true_error_deg, float)
+    fig = _figure(4.5, 4.0)
+    ax = fig.add_subplot()
+    ax.scatter(t - t.mean(), np.asarray(correction_deg, float), s=14)
+    lim = np.abs(t).max() * 1.2
+    ax.plot([-lim, lim], [-lim, lim], "k:", lw=1)
+    ax.set_xlabel("true angle error (deg, mean removed)")
+    ax.set_ylabel("estimated correction (deg)")
+    ax.set_title(title)
+    return fig

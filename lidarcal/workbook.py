@@ -170,8 +170,8 @@ def summary_line(folder: Path, kind: str) -> tuple[str, str]:
         return s.name, s.line()
     from .io.pairs import read_view_pairs
 
-    return Path(folder).name, f"{Path(folder).name}: {len(read_view_pairs(folder))} photo + " \
-                              "scan pairs (one flat board)"
+    return Path(folder).name, (f"{Path(folder).name}: {len(read_view_pairs(folder))} photo + "
+                               "scan pairs (one flat board)")
 
 
 def check_parameters_cell(nb, path: Path) -> None:

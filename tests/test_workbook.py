@@ -149,3 +149,24 @@ def test_notebooks_are_chosen_by_their_input_kind(tmp_path):
                  "--notebooks", "08")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "08_real_data" in r.stderr
     assert not (tmp_path / "x.pdf").exists()
+
+
+@pytest.mark.parametrize("notebooks", ["01,02,03,04,05,06"])
+def test_workbook_runs_without_sweeps_or_truth(dataset_copy, tmp_path, notebooks):
+    """Notebooks 01-06 on a 4-position dataset with no measurement sweeps (no 'measurements', no
+    measure/) and no truth.json: the disc notebook says so in its output instead of failing, and
+    no cell writes to stderr (no warnings in the PDF)."""
+    pypdf = pytest.importorskip("pypdf")
+    (dataset_copy / "truth.json").unlink()
+    meta = json.loads((dataset_copy / "dataset.json").read_text())
+    meta.pop("measurements", None)
+    (dataset_copy / "dataset.json").write_text(json.dumps(meta))
+    assert not (dataset_copy / "measure").exists()
+    out = tmp_path / "wb.pdf"
+    r = lidarcal("workbook", dataset_copy, "--out", out, "--notebooks", notebooks, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == "", r.stderr
+    text = "\n".join(p.extract_text() for p in pypdf.PdfReader(out).pages)
+    assert "this dataset lists no measurement sweeps" in text
+    for word in ("Traceback", "Error:", "Exception", "Warning:"):
+        assert word not in text, word
