@@ -274,3 +274,38 @@ def fits_pose_error(fits: dict, positions, true_poses: dict[int, Pose]) -> pd.Da
                           for name, m in fits.items()}).T
     table["jitter_deg"] = [m.jitter_deg for m in fits.values()]
     return table
+
+
+def v_fit_table(fits: dict, E_true_mm: np.ndarray | None = None) -> pd.DataFrame:
+    """The V fits of one scan (section 1.4) side by side: E (mm, scan plane), the V's angle
+    (deg), residual RMS (mm) and, with the true E in the LiDAR frame, its error (mm)."""
+    import pandas as pd
+
+    return pd.DataFrame([{"fit": name, "E_mm": f.E.round(2), "angle_deg": np.degrees(f.alpha),
+                          "rms_mm": f.residual_rms_mm,
+                          **({"E_error_mm": float(np.linalg.norm(f.E - np.asarray(E_true_mm)[:2]))}
+                             if E_true_mm is not None else {})} for name, f in fits.items()])
+
+
+def candidate_table(candidates: dict, z_axis_hint: np.ndarray, pose_true: Pose | None = None) -> pd.DataFrame:
+    """The two segment-to-board assignments of a pose (section 1.5): ``z . hint`` (the
+    z_axis_hint picks the positive one) and, with truth, each one's :func:`pose_error`."""
+    import pandas as pd
+
+    return pd.DataFrame([{"assignment": name, "z . hint": float(np.dot(c.z_axis, z_axis_hint)),
+                          **(pose_error(c, pose_true) if pose_true is not None else {})}
+                         for name, c in candidates.items()])
+
+
+def axis_table(models: dict, axis_true=None, near_mm: np.ndarray | None = None) -> pd.DataFrame:
+    """The turntable axis of each pose function (section 2): direction and point and, with the
+    true axis, the direction error (deg) and the distance between the axes near ``near_mm``."""
+    import pandas as pd
+
+    from .turntable import axis_distance_mm
+
+    return pd.DataFrame([{"model": k, "axis_direction": m.axis.direction.round(6),
+                          "axis_point_mm": m.axis.point.round(2),
+                          **({"axis_direction_error_deg": axis_direction_error_deg(m.axis.direction, axis_true.direction),
+                              "axis_offset_mm": axis_distance_mm(m.axis, axis_true, near_mm)}
+                             if axis_true is not None else {})} for k, m in models.items()])
