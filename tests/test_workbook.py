@@ -170,3 +170,24 @@ def test_workbook_runs_without_sweeps_or_truth(dataset_copy, tmp_path, notebooks
     assert "this dataset lists no measurement sweeps" in text
     for word in ("Traceback", "Error:", "Exception", "Warning:"):
         assert word not in text, word
+
+
+def test_the_shown_position_passes_over_a_broken_first_one(dataset_copy):
+    """Notebook 03 shows the first position whose stripes and V are found: a blank first stripe
+    image is passed over with the reason (calibrate would skip it too)."""
+    import cv2
+
+    from lidarcal.board import find_v_boards
+    from lidarcal.dataset import read_image
+    from lidarcal.pipeline import camera_for
+    from lidarcal.workbook import shown_position
+
+    ds = load_dataset(dataset_copy)
+    camera, _ = camera_for(ds)
+    views = find_v_boards(read_image(ds.board_image, camera.image_size), ds.v_board, camera)
+    pos, passed = shown_position(ds, camera, views)
+    assert pos.index == ds.positions[0].index and passed == []
+    cv2.imwrite(str(ds.positions[0].stripe_image), np.zeros(camera.image_size[::-1], np.uint8))
+    pos, passed = shown_position(ds, camera, views)
+    assert pos.index == ds.positions[1].index
+    assert len(passed) == 1 and passed[0].startswith(f"position {ds.positions[0].index} passed over")
