@@ -195,10 +195,13 @@ def summary_line(folder: Path, kind: str) -> tuple[str, str]:
     if kind == "dataset":
         s = summarise_dataset(load_dataset(folder))
         return s.name, s.line()
-    from .io.pairs import read_view_pairs
+    from .io.pairs import BOARD_JSON, board_spec, read_view_pairs
 
-    return Path(folder).name, (f"{Path(folder).name}: {len(read_view_pairs(folder))} photo + "
-                               "scan pairs (one flat board)")
+    line = f"{Path(folder).name}: {len(read_view_pairs(folder))} photo + scan pairs (one flat board"
+    if (Path(folder) / BOARD_JSON).is_file():
+        b = board_spec(folder)
+        line += f", {b.inner_corners[0]} x {b.inner_corners[1]} inner corners, {b.square_mm:g} mm squares"
+    return Path(folder).name, line + ")"
 
 
 def check_parameters_cell(nb, path: Path) -> None:

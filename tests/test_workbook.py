@@ -145,6 +145,10 @@ def test_notebooks_are_chosen_by_their_input_kind(tmp_path):
     assert kinds["08"] == "view-pairs" and all(k == "dataset" for n, k in kinds.items() if n < "08")
     assert input_kind(REPO / "data" / "paper_rig") == "dataset"
     assert input_kind(REPO / "data" / "real_tapas") == "view-pairs"
+    from lidarcal.workbook import summary_line
+
+    assert summary_line(REPO / "data" / "real_tapas", "view-pairs")[1] == \
+        "real_tapas: 7 photo + scan pairs (one flat board, 8 x 5 inner corners, 100 mm squares)"
     r = lidarcal("workbook", REPO / "data" / "paper_rig", "--out", tmp_path / "x.pdf",
                  "--notebooks", "08")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "08_real_data" in r.stderr
