@@ -159,8 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("planes", help="classic one-board calibration (Zhang-Pless) of a LiDAR "
                                       "against a camera from photo + scan pairs")
     s.add_argument("folder", type=Path, help="folder of NAME.png|jpg + NAME.csv pairs")
-    s.add_argument("--pattern", type=_pattern, required=True, help="inner corners, e.g. 8x5")
-    s.add_argument("--square-mm", type=float, required=True)
+    s.add_argument("--pattern", type=_pattern, default=None,
+                   help="inner corners, e.g. 8x5 (default: FOLDER/board.json)")
+    s.add_argument("--square-mm", type=float, default=None, help="(default: FOLDER/board.json)")
     s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
     s.add_argument("--out", type=Path, required=True, help="output folder for extrinsics.json")
     s.add_argument("--no-figures", action="store_true", help="skip OUT/projection_NAME.png")
@@ -370,13 +371,13 @@ def _cmd_workbook(a: argparse.Namespace) -> int:
 
 
 def _cmd_planes(a: argparse.Namespace) -> int:
-    from .dataset import BoardSpec
+    from .io.pairs import board_spec
     from .planes import run_planes, write_extrinsics
     from .planes_plots import write_projections
 
-    if a.square_mm <= 0:
+    if a.square_mm is not None and a.square_mm <= 0:
         raise DatasetError(a.folder, f"--square-mm must be positive, got {a.square_mm:g}")
-    res = run_planes(a.folder, a.camera, BoardSpec(a.pattern, a.square_mm))
+    res = run_planes(a.folder, a.camera, board_spec(a.folder, a.pattern, a.square_mm))
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     if not a.no_figures:

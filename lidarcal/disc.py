@@ -276,3 +276,85 @@ def table2_columns(measurements: dict) -> dict[str, list]:
             "reference_diameter_mm": [r.get("reference_diameter_mm") for r in rows],
             "error_mm": [r.get("error_mm") for r in rows],
             "reference": [bool(r.get("reference", False)) for r in rows]}
+
+
+# ------------------------------------------------------------------ notebook 06's tables
+
+#: the paper's Table 2 summary (section 3.2: 140 mm disc, mean of its trials), mm
+PAPER_TABLE2 = {"mean diameter": 138.49, "mean error": 138.49 - 140.0, "mean abs error": 2.77}
+
+
+def reference_choice(ds) -> str | None:
+    """The measurement to calibrate the edge model with: the first one of dataset.json
+    ``measurements`` with a ``reference_diameter_mm``, when at least one other is left to
+    measure (:func:`measure_dataset` refuses to measure none); ``None``: prior mode only."""
+    if len(ds.measurements) < 2:
+        return None
+    return next((m.name for m in ds.measurements if m.reference_diameter_mm is not None), None)
+
+
+def table2(measured: dict, ds, truth: dict | None = None):
+    """Table 2 (section 3.2) of the half-share fits, one row per trial.
+
+    ``measured``: name -> :class:`lidarcal.measure.DiscMeasurement`. The reference is the true
+    diameter where ``truth`` (truth.json) has the trial, else its ``reference_diameter_mm``
+    (errors NaN without either); ``centre_error_mm`` only with truth. Columns: trial,
+    reference_mm, measured_mm, error_mm, naive_mm, naive_error_mm, [centre_error_mm], points.
+    """
+    import pandas as pd
+
+    t_true = {t["name"]: t for t in (truth or {}).get("measurements", [])}
+    specs = {m.name: m for m in ds.measurements}
+    rows = []
+    for name, m in measured.items():
+        ref = t_true[name]["diameter_mm"] if name in t_true else specs[name].reference_diameter_mm
+        row = {"trial": name, "reference_mm": np.nan if ref is None else float(ref),
+               "measured_mm": m.diameter_mm, "naive_mm": m.naive_diameter_mm}
+        row["error_mm"] = row["measured_mm"] - row["reference_mm"]
+        row["naive_error_mm"] = row["naive_mm"] - row["reference_mm"]
+        if name in t_true:
+            row["centre_error_mm"] = float(np.linalg.norm(m.center_mm - np.asarray(t_true[name]["center_mm"])))
+        row["points"] = m.points
+        rows.append(row)
+    cols = ["trial", "reference_mm", "measured_mm", "error_mm", "naive_mm", "naive_error_mm",
+            *(["centre_error_mm"] if t_true else []), "points"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def table2_summary(t2):
+    """Table 2's means beside the paper's: mean diameter, mean error and mean absolute error of
+    the naive boundary circle and of the hits + misses fit (errors over the trials with a
+    reference; NaN without any)."""
+    import pandas as pd
+
+    def stats(d, e):
+        return {"mean diameter": d.mean(), "mean error": e.mean(), "mean abs error": e.abs().mean()}
+
+    return pd.DataFrame({"paper (Table 2)": PAPER_TABLE2,
+                         "naive boundary circle": stats(t2.naive_mm, t2.naive_error_mm),
+                         "hits + misses (ours)": stats(t2.measured_mm, t2.error_mm)})
+
+
+def checked_errors(table):
+    """The errors of a :func:`measure_dataset` table that test it: float ``error_mm`` of the discs
+    with a known diameter that did not calibrate the edge model (a Series by name)."""
+    import pandas as pd
+
+    err = pd.to_numeric(table["error_mm"], errors="coerce").astype(float)
+    keep = err.notna() & ~table["reference"].astype(bool)
+    return err[keep].set_axis(table["name"][keep])
+
+
+def edge_model_table(prior, with_reference=None, reference: str | None = None):
+    """The discs measured with the prior edge model and, when a reference was chosen, with
+    ``reference`` calibrating it, side by side (both :func:`measure_dataset` tables)."""
+    import pandas as pd
+
+    cols = {"no reference: diameter_mm": prior.diameter_mm, "sigma_mm": prior.diameter_sigma_mm,
+            "error_mm": pd.to_numeric(prior.error_mm, errors="coerce")}
+    if with_reference is not None:
+        cols.update({f"reference {reference}: diameter_mm": with_reference.diameter_mm,
+                     "sigma_mm ": with_reference.diameter_sigma_mm,
+                     "error_mm ": pd.to_numeric(with_reference.error_mm, errors="coerce"),
+                     "is reference": with_reference.reference})
+    return pd.DataFrame(cols).set_axis(prior.name)

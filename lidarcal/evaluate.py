@@ -147,3 +147,165 @@ def v_fit_crlb(points1: np.ndarray, points2: np.ndarray, normal1: np.ndarray, of
     cov_o = G @ cov @ G.T
     return {"cov": cov, "phi_std_deg": float(np.degrees(np.sqrt(cov[0, 0]))),
             "centre_cov": cov_o, "centre_rms_mm": float(np.sqrt(np.trace(cov_o)))}
+
+
+# ------------------------------------------------------------------ the notebooks' truth tables
+
+
+def truth_camera(truth: dict, image_size: tuple[int, int]):
+    """The true camera of ``truth.json`` (K, dist padded to OpenCV's five terms)."""
+    from .dataset import CameraModel
+
+    dist = np.asarray(truth["camera"]["dist"], float)
+    return CameraModel(np.asarray(truth["camera"]["K"], float), np.r_[dist, np.zeros(5 - len(dist))],
+                       tuple(image_size))
+
+
+def intrinsics_error(camera, true_camera) -> pd.DataFrame:
+    """fx, fy, cx, cy (px), k1, k2 of an estimated camera against the truth: truth, estimate,
+    error."""
+    import pandas as pd
+
+    def params(c):
+        return [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *np.asarray(c.dist, float)[:2]]
+
+    err = pd.DataFrame({"truth": params(true_camera), "estimate": params(camera)},
+                       index=["fx", "fy", "cx", "cy", "k1", "k2"])
+    err["error"] = err.estimate - err.truth
+    return err
+
+
+def ray_direction_error_deg(camera, true_camera, grid: tuple[int, int] = (25, 20)) -> np.ndarray:
+    """Angle (deg) between the rays of two cameras (Zhang's model with distortion) through a
+    ``grid`` (columns, rows) of pixels spanning the image: what an intrinsics error does to a
+    back-projected point."""
+    from .camera import pixel_rays
+    from .geometry import unit
+
+    w, h = camera.image_size
+    px = np.stack(np.meshgrid(np.linspace(0, w - 1, grid[0]), np.linspace(0, h - 1, grid[1])),
+                  -1).reshape(-1, 2)
+    cos = (unit(pixel_rays(camera, px)) * unit(pixel_rays(true_camera, px))).sum(1)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+def board_plane_table(views, true_planes: list[Plane] | None = None) -> tuple[pd.DataFrame, list]:
+    """The two V-board planes (section 1.2) by both methods, homography + SVD (eqs. 2-3) and
+    ``cv2.solvePnP``: normal, d_mm, reprojection RMS and, with ``true_planes``, the plane
+    errors (:func:`plane_error`). Returns the table and the truth plane matched to each board
+    (``None`` without truth)."""
+    import pandas as pd
+
+    match = match_planes([v.plane for v in views], true_planes) if true_planes is not None \
+        else [None] * len(views)
+    rows = []
+    for k, (v, j) in enumerate(zip(views, match)):
+        for method, plane, rms in (("homography + SVD, eqs. (2)-(3)", v.plane, v.reprojection_rms_px[0]),
+                                   ("solvePnP", v.plane_pnp, v.reprojection_rms_px[1])):
+            err = plane_error(plane, true_planes[j]) if j is not None else {}
+            rows.append({"board": k, "method": method, "normal": plane.normal.round(5),
+                         "d_mm": plane.d, **err, "reproj_rms_px": rms})
+    return pd.DataFrame(rows), match
+
+
+def v_angle_deg(board_planes: list[Plane], laser_plane: Plane) -> float:
+    """The angle alpha (deg) between the two lines the boards cut from the laser plane (section
+    1.3): the angle of the V in the scan, from the planes' normals."""
+    n1, n2 = (np.asarray(p.normal, float) for p in board_planes[:2])
+    d1, d2 = np.cross(n1, laser_plane.normal), np.cross(n2, laser_plane.normal)
+    return float(np.degrees(np.arccos(abs(np.dot(d1, d2)) / np.linalg.norm(d1) / np.linalg.norm(d2))))
+
+
+def model_errors(res, truth: dict, models: dict | None = None) -> pd.DataFrame:
+    """Mean true error of each pose function of a calibration (``res.fitted(model)`` against
+    ``truth.json``: centre_mm, z_axis_deg, x_axis_deg, axis_direction_deg) and of the single-shot
+    samples; ``models`` name -> function, by default the paper chain, rigid and joint fits."""
+    import pandas as pd
+
+    cols = ["centre_mm", "z_axis_deg", "x_axis_deg"]
+    if models is None:
+        models = {"paper chain": res.paper_model, "rigid": res.rigid_model, "joint": res.joint_model}
+    rows = {}
+    for name, fn in models.items():
+        if fn is None:
+            continue
+        e = pose_errors(res.fitted(fn), truth)[cols].mean()
+        e["axis_direction_deg"] = axis_direction_error_deg(fn.axis.direction,
+                                                           np.array(truth["axis"]["direction"]))
+        rows[name] = e
+    rows["samples"] = pose_errors(res.samples, truth)[cols].mean()
+    return pd.DataFrame(rows).T
+
+
+#: the paper's Table 1 (section 2, its rig): mean distance of the fitted poses to the samples
+PAPER_TABLE1 = {"centre_mm": 1.12, "z_axis_deg": 0.203, "x_axis_deg": 0.662}
+
+
+def table1_comparison(models: dict, res, truth: dict | None = None) -> pd.DataFrame:
+    """Table 1 of the paper for each pose function: (a) its mean distance to the samples it was
+    fitted to (:func:`lidarcal.turntable.table1`), with truth (b) its mean true error, and the
+    samples' own true error; the paper's row last. Index (model, comparison)."""
+    import pandas as pd
+
+    from .turntable import table1
+
+    cols = ["centre_mm", "z_axis_deg", "x_axis_deg"]
+    psi, samples = res.psi_deg, [p.pose for p in res.positions]
+    rows = {}
+    for name, m in models.items():
+        rows[(name, "(a) vs samples")] = table1(m, psi, samples)[cols].mean()
+        if truth is not None:
+            rows[(name, "(b) vs truth")] = pose_errors({p.index: m.pose(p.psi_deg) for p in res.positions},
+                                                       truth)[cols].mean()
+    if truth is not None:
+        rows[("single-shot samples", "(b) vs truth")] = pose_errors(res.samples, truth)[cols].mean()
+    rows[("paper, Table 1", "(a) vs samples")] = pd.Series(PAPER_TABLE1)
+    return pd.DataFrame(rows).T
+
+
+def fits_pose_error(fits: dict, positions, true_poses: dict[int, Pose]) -> pd.DataFrame:
+    """Mean true pose error (:func:`pose_error`) of each fitted pose function (name -> function
+    with ``position_psi``, e.g. joint fits with and without the jitter model) over ``positions``,
+    each at its own corrected angle; plus the fitted ``jitter_deg``."""
+    import pandas as pd
+
+    table = pd.DataFrame({name: pd.DataFrame([pose_error(m.pose(m.position_psi(p.index, p.psi_deg)),
+                                                         true_poses[p.index]) for p in positions]).mean()
+                          for name, m in fits.items()}).T
+    table["jitter_deg"] = [m.jitter_deg for m in fits.values()]
+    return table
+
+
+def v_fit_table(fits: dict, E_true_mm: np.ndarray | None = None) -> pd.DataFrame:
+    """The V fits of one scan (section 1.4) side by side: E (mm, scan plane), the V's angle
+    (deg), residual RMS (mm) and, with the true E in the LiDAR frame, its error (mm)."""
+    import pandas as pd
+
+    return pd.DataFrame([{"fit": name, "E_mm": f.E.round(2), "angle_deg": np.degrees(f.alpha),
+                          "rms_mm": f.residual_rms_mm,
+                          **({"E_error_mm": float(np.linalg.norm(f.E - np.asarray(E_true_mm)[:2]))}
+                             if E_true_mm is not None else {})} for name, f in fits.items()])
+
+
+def candidate_table(candidates: dict, z_axis_hint: np.ndarray, pose_true: Pose | None = None) -> pd.DataFrame:
+    """The two segment-to-board assignments of a pose (section 1.5): ``z . hint`` (the
+    z_axis_hint picks the positive one) and, with truth, each one's :func:`pose_error`."""
+    import pandas as pd
+
+    return pd.DataFrame([{"assignment": name, "z . hint": float(np.dot(c.z_axis, z_axis_hint)),
+                          **(pose_error(c, pose_true) if pose_true is not None else {})}
+                         for name, c in candidates.items()])
+
+
+def axis_table(models: dict, axis_true=None, near_mm: np.ndarray | None = None) -> pd.DataFrame:
+    """The turntable axis of each pose function (section 2): direction and point and, with the
+    true axis, the direction error (deg) and the distance between the axes near ``near_mm``."""
+    import pandas as pd
+
+    from .turntable import axis_distance_mm
+
+    return pd.DataFrame([{"model": k, "axis_direction": m.axis.direction.round(6),
+                          "axis_point_mm": m.axis.point.round(2),
+                          **({"axis_direction_error_deg": axis_direction_error_deg(m.axis.direction, axis_true.direction),
+                              "axis_offset_mm": axis_distance_mm(m.axis, axis_true, near_mm)}
+                             if axis_true is not None else {})} for k, m in models.items()])

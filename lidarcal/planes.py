@@ -747,8 +747,10 @@ def write_extrinsics(res: PlanesResult, out: str | Path, command: str | None = N
 def leave_one_out(views: list[ViewData], result: PlanesResult, seed: int = 0,
                   names: list[str] | None = None) -> list[dict]:
     """Calibrate on every used view but one; the held-out view's board returns (as chosen by
-    the full fit) are scored against its camera plane: ``{"name", "rms_mm", "in_sample_rms_mm"}``
-    per held-out view (all used views, or those in ``names``)."""
+    the full fit) are scored against its camera plane: ``{"name", "rms_mm", "in_sample_rms_mm",
+    "determined"}`` per held-out view (all used views, or those in ``names``); ``determined`` is
+    False when the other views leave a pose direction undetermined (the prediction then tests
+    nothing: the pose is free along that direction)."""
     import copy
 
     out = []
@@ -763,5 +765,6 @@ def leave_one_out(views: list[ViewData], result: PlanesResult, seed: int = 0,
         held = views[k]
         res = plane_residuals_mm(held, r.R, r.T)
         out.append({"name": held.name, "rms_mm": float(np.sqrt(np.mean(res ** 2))),
-                    "in_sample_rms_mm": result.rms_mm[k]})
+                    "in_sample_rms_mm": result.rms_mm[k],
+                    "determined": not r.uncertainty.undetermined})
     return out

@@ -97,3 +97,23 @@ def plot_view_residuals(res: PlanesResult):
     ax.set_ylabel("point-to-plane residual (mm)")
     ax.legend(fontsize=7, ncols=4)
     return fig
+
+
+def board_return_share(res: PlanesResult, margin_squares: float = 1.0) -> dict[str, float]:
+    """Per view (by name), the share of its board returns that the calibration ``R, T`` projects
+    inside the board's outline in its photo (``margin_squares`` beyond the outer corners, the
+    board's plane from its corners): the check of the projection figures in numbers. Views with
+    no board or no board returns are left out."""
+    from .board import board_outline_px
+    from .overlay import project_returns
+
+    share = {}
+    for v in res.views:
+        if v.board is None or len(v.beams) == 0:
+            continue
+        px, _, _ = project_returns(res.camera, res.R, res.T, v.angle_deg, v.range_mm)  # type: ignore[attr-defined]
+        outline = board_outline_px(res.camera, v.board.R, v.board.T, v.board.board,  # type: ignore[attr-defined]
+                                   margin_squares=margin_squares).astype(np.float32)
+        share[v.name] = float(np.mean([cv2.pointPolygonTest(outline, (float(x), float(y)), False) >= 0
+                                       for x, y in px[v.beams]]))
+    return share

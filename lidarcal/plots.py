@@ -191,12 +191,11 @@ def plot_scan_split(points_xy: np.ndarray, first: np.ndarray, second: np.ndarray
             ax.annotate("LiDAR", (0, 0), textcoords="offset points", xytext=(4, 4), fontsize=8)
         else:
             v = p[s1 | s2] if (s1 | s2).any() else p[ok]
-            if len(v):
-                lo, hi = v.min(0), v.max(0)
-                m = 0.1 * (hi - lo).max() + 5
-                ax.set_xlim(lo[0] - m, hi[0] + m)
-                ax.set_ylim(lo[1] - m, hi[1] + m)
-        ax.set_aspect("equal", adjustable="datalim")
+            if len(v):  # a square window on the V (equal spans: the equal aspect keeps the limits)
+                c, half = (v.min(0) + v.max(0)) / 2, 0.6 * np.ptp(v, axis=0).max() + 5
+                ax.set_xlim(c[0] - half, c[0] + half)
+                ax.set_ylim(c[1] - half, c[1] + half)
+        ax.set_aspect("equal", adjustable="box" if k == 1 else "datalim")
         ax.set_xlabel("x_L (mm)")
         ax.set_ylabel("y_L (mm)")
         ax.grid(alpha=0.3)
@@ -608,4 +607,20 @@ def plot_table2(diameters_mm: np.ndarray, reference_mm: np.ndarray | float,
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_title(title, fontsize=10)
+    return fig
+
+
+def plot_angle_corrections(true_error_deg: np.ndarray, correction_deg: np.ndarray,
+                           title: str = "per-position angle corrections") -> Figure:
+    """The joint fit's per-position turntable angle corrections against the true angle errors
+    (mean removed: the fit cannot see a common offset), with the line of equality."""
+    t = np.asarray(true_error_deg, float)
+    fig = _figure(4.5, 4.0)
+    ax = fig.add_subplot()
+    ax.scatter(t - t.mean(), np.asarray(correction_deg, float), s=14)
+    lim = np.abs(t).max() * 1.2
+    ax.plot([-lim, lim], [-lim, lim], "k:", lw=1)
+    ax.set_xlabel("true angle error (deg, mean removed)")
+    ax.set_ylabel("estimated correction (deg)")
+    ax.set_title(title)
     return fig

@@ -109,6 +109,33 @@ def dataset_summary(ds: Dataset) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["item", "value"]).set_index("item")
 
 
+def shown_position(ds: Dataset, camera, boards, rho: float | None = None):
+    """The position a notebook shows step by step (sections 1.3-1.4): the first of
+    positions.csv whose stripe image gives a laser plane and whose scan shows the V, read as
+    ``calibrate`` reads them (``lidar.laser_colour``, the dataset's reflectance ratio ``rho``).
+    A recorded dataset's first position may be one that ``calibrate`` skips. Returns the
+    position and one line per position passed over."""
+    import numpy as np
+
+    from .dataset import read_scan, read_stripe_image
+    from .scan import split_v
+    from .stripe import camera_lines
+
+    passed_over = []
+    for pos in ds.positions:
+        try:
+            img = read_stripe_image(pos.stripe_image, camera.image_size, ds.lidar.laser_colour)
+            cl = camera_lines(camera, img, boards, rho=rho)
+            ang, rng = read_scan(pos.scan, ds.lidar)
+            split_v(ang, rng, alpha=cl.alpha)
+            return pos, passed_over
+        except (DatasetError, ValueError, np.linalg.LinAlgError) as e:
+            passed_over.append(f"position {pos.index} passed over: {e}")
+    raise DatasetError(ds.root / "positions.csv", "no position gives both a laser plane from its "
+                                                  "stripes and the V in its scan; run lidarcal "
+                                                  "check on the dataset")
+
+
 # ------------------------------------------------------------------ notebooks
 
 
@@ -168,10 +195,13 @@ def summary_line(folder: Path, kind: str) -> tuple[str, str]:
     if kind == "dataset":
         s = summarise_dataset(load_dataset(folder))
         return s.name, s.line()
-    from .io.pairs import read_view_pairs
+    from .io.pairs import BOARD_JSON, board_spec, read_view_pairs
 
-    return Path(folder).name, f"{Path(folder).name}: {len(read_view_pairs(folder))} photo + " \
-                              "scan pairs (one flat board)"
+    line = f"{Path(folder).name}: {len(read_view_pairs(folder))} photo + scan pairs (one flat board"
+    if (Path(folder) / BOARD_JSON).is_file():
+        b = board_spec(folder)
+        line += f", {b.inner_corners[0]} x {b.inner_corners[1]} inner corners, {b.square_mm:g} mm squares"
+    return Path(folder).name, line + ")"
 
 
 def check_parameters_cell(nb, path: Path) -> None:

@@ -201,3 +201,19 @@ def test_table2_columns_carry_sigma_and_reference_flags():
     cols = table2_columns(meas)
     assert cols["name"] == ["a", "b"] and cols["diameter_sigma_mm"] == [0.4, None]
     assert cols["reference"] == [True, False] and cols["error_mm"] == [0.1, -0.2]
+
+
+def test_the_reference_is_chosen_from_the_data():
+    """Notebook 06's reference: the first sweep with a reference_diameter_mm, when another is left
+    to measure; none (prior mode only) without one or with a single sweep."""
+    from types import SimpleNamespace as NS
+
+    from lidarcal.disc import reference_choice
+
+    def ds(*refs):
+        return NS(measurements=[NS(name=f"disc_{k}", reference_diameter_mm=r) for k, r in enumerate(refs)])
+
+    assert reference_choice(ds(None, 140.0, 100.0)) == "disc_1"
+    assert reference_choice(ds(140.0, 140.0)) == "disc_0"
+    assert reference_choice(ds(None, None)) is None
+    assert reference_choice(ds(140.0)) is None and reference_choice(ds()) is None

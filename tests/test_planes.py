@@ -16,9 +16,10 @@ from scipy.spatial.transform import Rotation
 
 from lidarcal.board import board_outline_px
 from lidarcal.dataset import BoardSpec, DatasetError
-from lidarcal.io.pairs import read_scan_any, read_view_pairs
+from lidarcal.io.pairs import board_spec, read_scan_any, read_view_pairs
 from lidarcal.overlay import lidar_on_image, project_returns
 from lidarcal.planes import calibrate_planes, leave_one_out, run_planes
+from lidarcal.planes_plots import board_return_share
 from lidarcal.scan import line_segments, local_line_noise
 from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes, write_oneboard
 
@@ -159,6 +160,18 @@ def test_real_leave_one_out_predicts_the_held_out_boards(tapas):
     by = {r["name"]: r for r in loo}
     assert by["00"]["rms_mm"] < 6.0 and by["05"]["rms_mm"] < 6.0
     assert all(r["rms_mm"] < 1.4 * r["in_sample_rms_mm"] for r in loo)
+    assert all(r["determined"] for r in loo)  # six views fix the pose
+
+
+def test_five_real_views_leave_the_pose_undetermined_and_say_so(tapas):
+    # measured on views 00-04: a rotation about camera [0.61, 0.56, -0.56] has a 52 mm lever
+    # sigma; the fit says so (sigma null) and holding out 02, 03 or 04 leaves it undetermined too
+    sub = [v for v in tapas.views if v.name in {"00", "01", "02", "03", "04"}]
+    five = calibrate_planes(sub)
+    assert five.uncertainty.undetermined and None in five.uncertainty.rotation_deg
+    assert any("undetermined" in w for w in five.warnings)
+    loo = leave_one_out(sub, five, names=["02"])
+    assert [(r["name"], r["determined"]) for r in loo] == [("02", False)]
 
 
 def test_real_board_returns_land_on_the_board_in_the_photo(tapas):
@@ -171,6 +184,8 @@ def test_real_board_returns_land_on_the_board_in_the_photo(tapas):
         inside = [cv2.pointPolygonTest(outline.astype(np.float32), (float(x), float(y)), False)
                   >= 0 for x, y in px[v.beams]]
         assert np.mean(inside) > 0.75, v.name
+    share = board_return_share(tapas)  # the same check as one call (notebook 08)
+    assert list(share) == [v.name for v in tapas.views] and min(share.values()) > 0.75
     fig = lidar_on_image(np.zeros((480, 640), np.uint8), tapas.camera, tapas.R, tapas.T,
                          tapas.views[0].angle_deg, tapas.views[0].range_mm,
                          highlight=tapas.views[0].beams)
@@ -266,3 +281,33 @@ def test_readme_commands_run(tmp_path, small_dataset):
     r = _lidarcal("overlay", small_dataset, "--calibration", tmp_path / "cal" / "calibration.json",
                   "--index", "99", "--out", png)
     assert r.returncode == 2 and "no position with index 99" in r.stderr
+
+
+def test_cli_planes_reads_the_board_from_board_json(rendered, tmp_path):
+    # write_oneboard names its board in board.json: without --pattern/--square-mm the same answer
+    given = _planes_ok(rendered, "8x5", "80", tmp_path / "given")
+    r = _lidarcal("planes", rendered, "--camera", rendered / "camera.json", "--out", tmp_path / "f",
+                  "--no-figures")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "f" / "extrinsics.json").read_text())
+    np.testing.assert_allclose(doc["R"], given["R"], atol=1e-9)
+    np.testing.assert_allclose(doc["T_mm"], given["T_mm"], atol=1e-6)
+    # a flag given alone overrides that key of the file
+    assert board_spec(rendered, None, 40.0) == BoardSpec((8, 5), 40.0)
+    assert board_spec(rendered) == BoardSpec((8, 5), 80.0)
+
+
+def test_planes_without_a_board_is_one_line_and_exit_2(tmp_path):
+    folder = tmp_path / "views"
+    folder.mkdir()
+    for f in ("00.png", "00.csv", "camera.json"):
+        (folder / f).write_bytes((TAPAS / f).read_bytes())
+    r = _lidarcal("planes", folder, "--camera", folder / "camera.json", "--out", tmp_path / "o")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert "board.json: missing: no board given" in r.stderr and "--pattern" in r.stderr
+    (folder / "board.json").write_text('{"inner_corners": [8], "square_mm": 100}')
+    with pytest.raises(DatasetError, match="inner_corners' must be two integers"):
+        board_spec(folder)
+    (folder / "board.json").write_text('{"inner_corners": [8, 5], "square_mm": -1}')
+    with pytest.raises(DatasetError, match="square_mm"):
+        board_spec(folder)

@@ -145,7 +145,53 @@ def test_notebooks_are_chosen_by_their_input_kind(tmp_path):
     assert kinds["08"] == "view-pairs" and all(k == "dataset" for n, k in kinds.items() if n < "08")
     assert input_kind(REPO / "data" / "paper_rig") == "dataset"
     assert input_kind(REPO / "data" / "real_tapas") == "view-pairs"
+    from lidarcal.workbook import summary_line
+
+    assert summary_line(REPO / "data" / "real_tapas", "view-pairs")[1] == \
+        "real_tapas: 7 photo + scan pairs (one flat board, 8 x 5 inner corners, 100 mm squares)"
     r = lidarcal("workbook", REPO / "data" / "paper_rig", "--out", tmp_path / "x.pdf",
                  "--notebooks", "08")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "08_real_data" in r.stderr
     assert not (tmp_path / "x.pdf").exists()
+
+
+@pytest.mark.parametrize("notebooks", ["01,02,03,04,05,06"])
+def test_workbook_runs_without_sweeps_or_truth(dataset_copy, tmp_path, notebooks):
+    """Notebooks 01-06 on a 4-position dataset with no measurement sweeps (no 'measurements', no
+    measure/) and no truth.json: the disc notebook says so in its output instead of failing, and
+    no cell writes to stderr (no warnings in the PDF)."""
+    pypdf = pytest.importorskip("pypdf")
+    (dataset_copy / "truth.json").unlink()
+    meta = json.loads((dataset_copy / "dataset.json").read_text())
+    meta.pop("measurements", None)
+    (dataset_copy / "dataset.json").write_text(json.dumps(meta))
+    assert not (dataset_copy / "measure").exists()
+    out = tmp_path / "wb.pdf"
+    r = lidarcal("workbook", dataset_copy, "--out", out, "--notebooks", notebooks, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == "", r.stderr
+    text = "\n".join(p.extract_text() for p in pypdf.PdfReader(out).pages)
+    assert "this dataset lists no measurement sweeps" in text
+    for word in ("Traceback", "Error:", "Exception", "Warning:"):
+        assert word not in text, word
+
+
+def test_the_shown_position_passes_over_a_broken_first_one(dataset_copy):
+    """Notebook 03 shows the first position whose stripes and V are found: a blank first stripe
+    image is passed over with the reason (calibrate would skip it too)."""
+    import cv2
+
+    from lidarcal.board import find_v_boards
+    from lidarcal.dataset import read_image
+    from lidarcal.pipeline import camera_for
+    from lidarcal.workbook import shown_position
+
+    ds = load_dataset(dataset_copy)
+    camera, _ = camera_for(ds)
+    views = find_v_boards(read_image(ds.board_image, camera.image_size), ds.v_board, camera)
+    pos, passed = shown_position(ds, camera, views)
+    assert pos.index == ds.positions[0].index and passed == []
+    cv2.imwrite(str(ds.positions[0].stripe_image), np.zeros(camera.image_size[::-1], np.uint8))
+    pos, passed = shown_position(ds, camera, views)
+    assert pos.index == ds.positions[1].index
+    assert len(passed) == 1 and passed[0].startswith(f"position {ds.positions[0].index} passed over")

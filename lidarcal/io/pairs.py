@@ -110,3 +110,30 @@ def read_view_pairs(folder: str | Path) -> list[ViewPair]:
         ang, rng = read_scan_any(scans[name])
         out.append(ViewPair(name, images[name], scans[name], ang, rng))
     return out
+
+
+#: the optional file of a view-pairs folder that names its board (inner corners, square size)
+BOARD_JSON = "board.json"
+
+
+def board_spec(folder: str | Path, pattern: tuple[int, int] | None = None,
+               square_mm: float | None = None):
+    """The chessboard of a view-pairs folder: ``pattern`` and ``square_mm`` when both are given,
+    else the folder's ``board.json`` ``{"inner_corners": [8, 5], "square_mm": 100}`` (the keys
+    of dataset.json's boards); one of them given alone overrides that key of the file."""
+    from ..dataset import BoardSpec, _board, read_json_object
+
+    if pattern is not None and square_mm is not None:
+        if square_mm <= 0:
+            raise DatasetError(Path(folder), f"square size must be positive, got {square_mm:g}")
+        return BoardSpec(tuple(pattern), float(square_mm))
+    path = Path(folder) / BOARD_JSON
+    fix = 'write {"inner_corners": [8, 5], "square_mm": 100} there (the board\'s inner corners ' \
+          'and square side, mm) or give --pattern and --square-mm'
+    raw = read_json_object(path, f"missing: no board given; {fix}", fix)
+    board = _board(raw, path, "board")
+    if pattern is not None:
+        board = BoardSpec(tuple(pattern), board.square_mm)
+    if square_mm is not None:
+        board = BoardSpec(board.inner_corners, float(square_mm))
+    return board

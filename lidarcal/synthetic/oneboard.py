@@ -179,7 +179,7 @@ def render_photo(rig: OneBoardRig, view: OneBoardView, seed: int = 0) -> np.ndar
 
 def write_oneboard(rig: OneBoardRig, out: str | Path, seed: int = 0) -> Path:
     """A ``lidarcal planes`` folder: ``NN.png`` (rendered) + ``NN.csv`` (``angle_deg,range_mm``,
-    0 = no return) per view, ``camera.json`` and ``truth.json`` (R, T_mm, noise levels)."""
+    0 = no return) per view, ``camera.json``, ``board.json`` and ``truth.json`` (R, T_mm, noise levels)."""
     import cv2
 
     out = Path(out)
@@ -192,6 +192,8 @@ def write_oneboard(rig: OneBoardRig, out: str | Path, seed: int = 0) -> Path:
         lines = ["angle_deg,range_mm"] + [f"{a:.2f},{x:.0f}" for a, x in zip(v.angle_deg, r)]
         (out / f"{v.name}.csv").write_text("\n".join(lines) + "\n")
     write_json_atomic(out / "camera.json", rig.camera.to_dict())
+    write_json_atomic(out / "board.json", {"inner_corners": list(rig.board.inner_corners),
+                                           "square_mm": rig.board.square_mm})
     write_json_atomic(out / "truth.json", {"R": rig.R.tolist(), "T_mm": rig.T.tolist(),
                                            "range_noise_mm": rig.range_noise_mm,
                                            "pattern": list(rig.board.inner_corners),
