@@ -31,7 +31,7 @@ import numpy as np
 from .noise import _Groups
 from .params import _STEPS, N_RIG, _poses, _rig
 from .problem import _Problem
-from .solver import LMResult, _irls_weights, _rho
+from .solver import LMResult, _irls_weights, _lm_scaling, _lm_step, _rho
 
 
 def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
@@ -204,12 +204,9 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
                  + Jp.reshape(-1, mp.n_par).T @ QJp.reshape(-1, mp.n_par) + (Jr.T * Wr) @ Jr)
             g = (QJs.reshape(-1, mp.n_par).T @ cs.ravel() + QJp.reshape(-1, mp.n_par).T @ cp.ravel()
                  + (Jr.T * Wr) @ prob.prior_residuals(xi))
-            D = np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
+            D = _lm_scaling(H)
             while True:
-                try:
-                    step = -np.linalg.solve(H + lam * np.diag(D), g)
-                except np.linalg.LinAlgError:
-                    step = -np.linalg.lstsq(H + lam * np.diag(D), g, rcond=None)[0]
+                step = _lm_step(H, g, lam, D)
                 if abs(float(g @ step)) <= inner_tol * max(q, 1e-300):
                     step = None  # converged: the predicted decrease is below rounding
                     break
