@@ -207,10 +207,17 @@ def reflectance_samples(camera: CameraModel, stripe_image: np.ndarray,
     img = np.asarray(stripe_image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    crops = _board_inputs(img, boards, True)
+    if any(crop is not None and crop[2] is None for crop in crops):
+        return None
+    return _crops_samples(crops, camera, min_snr)
+
+
+def _crops_samples(crops, camera: CameraModel, min_snr: float) -> list:
+    """The :func:`reflectance_ratio` samples of the stripes in ``crops`` (centres found
+    with ``rho = 1``: no albedo division)."""
     out = []
-    for crop in _board_inputs(img, boards, True):
-        if crop is not None and crop[2] is None:
-            return None
+    for crop in crops:
         _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True)
         if info.get("samples") is not None:
             out.append(info["samples"])
@@ -247,12 +254,7 @@ def board_stripe_centres(camera: CameraModel, stripe_image: np.ndarray,
         crops = [None if c is None else (c[0], c[1], None, c[3]) for c in crops]
         rho = None
     elif rho is None:
-        samples = []
-        for crop in crops:
-            _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True)
-            if info.get("samples") is not None:
-                samples.append(info["samples"])
-        rho = reflectance_ratio(samples)
+        rho = reflectance_ratio(_crops_samples(crops, camera, min_snr))
         if rho is None:
             rho = 1.0  # not seen in this image: no division (background still uses blackness)
     centres, problems = [], []
