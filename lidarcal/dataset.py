@@ -21,7 +21,7 @@ from typing import Any, Self
 import cv2
 import numpy as np
 
-from .laser_colour import LASER_COLOURS
+from .laser_colour import LASER_COLOURS, laser_response
 
 DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
@@ -88,7 +88,7 @@ class LidarSpec:
     range_max_mm: float
     z_axis_hint: tuple[float, float, float] = DEFAULT_Z_AXIS_HINT
     #: the laser's colour in the stripe images (``lidar.laser_colour``): red, green, blue,
-    #: gray (a NIR laser) or auto; see :func:`lidarcal.stripe.laser_response`
+    #: gray (a NIR laser) or auto; see :func:`lidarcal.laser_colour.laser_response`
     laser_colour: str = "auto"
 
     @property
@@ -402,15 +402,13 @@ def _checked_size(img: np.ndarray, path: Path, image_size: tuple[int, int] | Non
 def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None,
                       laser_colour: str = "auto") -> np.ndarray:
     """A stripe image as uint8: gray images as they are; colour images by
-    :func:`lidarcal.stripe.laser_response` (a dark frame by its brightest channel, a
+    :func:`lidarcal.laser_colour.laser_response` (a dark frame by its brightest channel, a
     lights-on photo by the laser colour's excess over the other channels)."""
     if laser_colour == "gray":
         return read_image(path, image_size, colour="max")
     img = _decode_8bit(path)  # decoded once: a gray image is used as it is
     if img.ndim == 2:
         return _checked_size(img, path, image_size)
-    from .stripe import laser_response
-
     return _checked_size(laser_response(img[:, :, :3], laser_colour), path, image_size)
 
 
