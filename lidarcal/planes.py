@@ -90,12 +90,6 @@ class BoardPlane:
     sigma_px: float
     board: BoardSpec
 
-    def sigma_at(self, X: np.ndarray) -> np.ndarray:
-        """1-sigma (mm) of the plane's distance at camera-frame points ``X`` (N, 3)."""
-        X = np.atleast_2d(X)
-        g = np.column_stack([X @ self.basis, -np.ones(len(X))])  # d(n.X - d)/d(params)
-        return np.sqrt(np.einsum("ij,jk,ik->i", g, self.cov, g))
-
 
 def find_board(image: np.ndarray, board: BoardSpec) -> list[tuple[np.ndarray, BoardSpec]]:
     """Chessboard corner sets (N, 2) with the pattern either way round (8x5 = 5x8): the

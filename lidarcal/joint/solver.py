@@ -111,7 +111,7 @@ def _irls_weights(z: np.ndarray, loss: str) -> np.ndarray:
     raise ValueError(f"unknown loss {loss!r}")
 
 
-def _jacobian(prob: _Problem, n_board: bool) -> tuple[np.ndarray, np.ndarray]:
+def _jacobian(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
     """Jacobian of the normalised residuals (scan, stripe, ranging prior, corners) wrt rig
     (10), board (12) and ranging (``prob.n_ranging``) parameters, at x = 0. Returns (residuals, J)."""
     n = N_RIG + 2 * N_BOARD + prob.n_ranging
@@ -124,7 +124,7 @@ def _covariance(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
     """Covariance (10 + n_ranging, 10 + n_ranging) of the rig and ranging parameters, the
     unobservable directions (10 + n_ranging, q), s^2. The rig block is marginal over the
     ranging terms: estimating them shows as larger rig sigmas."""
-    r, J = _jacobian(prob, True)
+    r, J = _jacobian(prob)
     n_main = len(r) - len(prob.corner_residuals(prob.base.board_R, prob.base.board_T))
     w = _irls_weights(r / f_scale, loss)
     Jw = J * np.sqrt(w)[:, None]
