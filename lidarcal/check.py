@@ -20,7 +20,6 @@ cannot be read; one ``error:`` line).
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -35,6 +34,7 @@ from .dataset import (
     read_image,
     read_scan,
     read_stripe_image,
+    write_atomic,
 )
 
 if TYPE_CHECKING:
@@ -341,16 +341,8 @@ def write_sheet(res: CheckResult, path: str | os.PathLike) -> Path:
     fmt = path.suffix.lower().lstrip(".")
     if fmt not in ("png", "pdf"):
         raise DatasetError(path, "the contact sheet must be a .png or .pdf file")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        contact_sheet(res).savefig(tmp, format=fmt, dpi=200)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomic(path, lambda tmp: contact_sheet(res).savefig(tmp, format=fmt, dpi=200),
+                        ".tmp")
 
 
 # ------------------------------------------------------------------ the command

@@ -14,6 +14,7 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -569,19 +570,29 @@ def read_sweep(path: Path, lidar: LidarSpec | None = None):
     return pd.DataFrame({"psi_deg": psi, "angle_deg": ang, "range_mm": rng})
 
 
-def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
-    """Write JSON to a temporary file in the same folder, then rename (never half-written)."""
+def write_atomic(path: str | os.PathLike, write: Callable[[Path], object],
+                 suffix: str | None = None) -> Path:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``
+    (never half-written; the temporary file is removed on any error). ``suffix``: the
+    temporary file's (default ``path``'s own, for writers that infer the format from it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix if suffix is None
+                               else suffix, dir=path.parent)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        write(Path(tmp))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return path
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
+    """Write JSON to a temporary file in the same folder, then rename (never half-written)."""
+    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
+    write_atomic(path, lambda tmp: tmp.write_text(text), ".tmp")
 
 
 def _json_default(o: Any) -> Any:
