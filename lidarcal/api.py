@@ -50,15 +50,9 @@ class Calibration:
 
         ``psi_deg`` is one angle or one per return; NaN ranges (no return) give NaN rows.
         """
-        ang = np.radians(np.asarray(angle_deg, dtype=float))
-        rng = self.ranging.correct(np.asarray(range_mm, dtype=float))
-        psi = np.broadcast_to(np.asarray(psi_deg, dtype=float), rng.shape)
-        local = np.column_stack([rng * np.cos(ang), rng * np.sin(ang), np.zeros_like(rng)])
-        out = np.empty_like(local)
-        for value in np.unique(psi):
-            sel = psi == value
-            out[sel] = self.pose(value).apply(local[sel])
-        return out
+        from .measure import returns_points  # lazy: measure imports pandas and scipy
+
+        return returns_points(psi_deg, angle_deg, range_mm, self)
 
     def cloud(self, sweep, frame: str = "camera", lidar=None):
         """Every valid return of a sweep as a 3D point, eq. (28), psi per scan line.

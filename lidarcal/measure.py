@@ -216,12 +216,21 @@ def sweep_points(sweep: pd.DataFrame, model: PoseFunction) -> np.ndarray:
     angle and range stay in the DataFrame). ``model.pose`` is called once per
     distinct psi; the rest is vectorised.
     """
-    psi, ang, rng = _columns(sweep)
-    rng = ranging_of(model).correct(rng)  # range offset (lidarcal.ranging) before eq. (28)
+    return returns_points(*_columns(sweep), model)
+
+
+def returns_points(psi_deg: np.ndarray, angle_deg: np.ndarray, range_mm: np.ndarray,
+                   model: PoseFunction) -> np.ndarray:
+    """Camera-frame points (N, 3) of LiDAR returns, eq. (28):
+    ``X_c = R(psi) [rho cos theta, rho sin theta, 0]^T + T(psi)``, with ``rho`` the range
+    corrected by the model's ranging terms (:func:`lidarcal.ranging.ranging_of`) and
+    ``model.pose`` called once per distinct ``psi``; NaN ranges give NaN rows."""
+    rng = ranging_of(model).correct(np.asarray(range_mm, dtype=float))
+    psi = np.broadcast_to(np.asarray(psi_deg, dtype=float), rng.shape)
     upsi, inv = np.unique(psi, return_inverse=True)
     R, T = _poses(model, upsi)
-    th = np.radians(ang)
-    local = np.column_stack([rng * np.cos(th), rng * np.sin(th), np.zeros_like(th)])  # eq. (6)
+    th = np.radians(np.asarray(angle_deg, dtype=float))
+    local = np.column_stack([rng * np.cos(th), rng * np.sin(th), np.zeros_like(rng)])  # eq. (6)
     return np.einsum("nij,nj->ni", R[inv], local) + T[inv]
 
 
