@@ -70,7 +70,7 @@ from scipy.optimize import brentq, least_squares
 from scipy.sparse import csgraph
 
 from .dataset import LidarSpec
-from .geometry import Plane, Pose, fit_circle_2d, fit_plane, plane_basis
+from .geometry import MAD_TO_SIGMA, Plane, Pose, fit_circle_2d, fit_plane, plane_basis
 from .ranging import ranging_of
 
 #: inlier band of the disc plane, in robust range-noise sigmas
@@ -275,7 +275,7 @@ def _mad_sigma(x: np.ndarray) -> float:
     x = x[np.isfinite(x)]
     if len(x) == 0:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+    return float(MAD_TO_SIGMA * np.median(np.abs(x - np.median(x))))
 
 
 def _range_noise(r: np.ndarray) -> float:
@@ -284,7 +284,7 @@ def _range_noise(r: np.ndarray) -> float:
     d2 = d2[np.isfinite(d2)]
     if len(d2) < 10:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(d2)) / np.sqrt(6.0))
+    return float(MAD_TO_SIGMA * np.median(np.abs(d2)) / np.sqrt(6.0))
 
 
 _DIRS = ((0, 1), (0, -1), (1, 0), (-1, 0))

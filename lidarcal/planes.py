@@ -64,7 +64,6 @@ EXTRINSICS_FORMAT = "lidarcal-extrinsics/1"
 #: Views needed to cross-check the board segments (the linear H has nine unknowns, each view
 #: gives two constraints).
 MIN_VIEWS_CONSENSUS = 5
-_MAD = 1.4826
 
 
 # ---------------------------------------------------------------------------

@@ -14,10 +14,10 @@ import numpy as np
 
 from .camera import undistort_pixels
 from .dataset import CameraModel
+from .geometry import MAD_TO_SIGMA
 from .laser_colour import SATURATED_DN
 from .stripe_quality import quality_problem, stripe_quality
 
-MAD_TO_SIGMA = 1.4826
 
 def _hist_percentile(hist: np.ndarray, q: float) -> float:
     """``np.percentile`` (linear interpolation) of the integers ``0..len(hist)-1`` counted in
