@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .dataset import CALIBRATION_FORMAT, DatasetError
+from .dataset import CALIBRATION_FORMAT, DatasetError, read_json_object
 from .geometry import Pose
 
 
@@ -51,15 +50,9 @@ class Calibration:
 
         ``psi_deg`` is one angle or one per return; NaN ranges (no return) give NaN rows.
         """
-        ang = np.radians(np.asarray(angle_deg, dtype=float))
-        rng = self.ranging.correct(np.asarray(range_mm, dtype=float))
-        psi = np.broadcast_to(np.asarray(psi_deg, dtype=float), rng.shape)
-        local = np.column_stack([rng * np.cos(ang), rng * np.sin(ang), np.zeros_like(rng)])
-        out = np.empty_like(local)
-        for value in np.unique(psi):
-            sel = psi == value
-            out[sel] = self.pose(value).apply(local[sel])
-        return out
+        from .measure import returns_points  # lazy: measure imports pandas and scipy
+
+        return returns_points(psi_deg, angle_deg, range_mm, self)
 
     def cloud(self, sweep, frame: str = "camera", lidar=None):
         """Every valid return of a sweep as a 3D point, eq. (28), psi per scan line.
@@ -87,15 +80,10 @@ def load_calibration(path: str | os.PathLike, model: str = "poses") -> Calibrati
     p = Path(path)
     if p.is_dir():
         p = p / "calibration.json"
-    if not p.is_file():
-        raise DatasetError(p, "missing; run 'lidarcal calibrate DATASET --out DIR' first")
-    try:
-        data = json.loads(p.read_text(encoding="utf-8-sig"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(p, f"not valid JSON ({e})") from None
-    if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
-        raise DatasetError(p, f"unknown format {data.get('format') if isinstance(data, dict) else None!r},"
-                              f" expected '{CALIBRATION_FORMAT}'")
+    data = read_json_object(p, "missing; run 'lidarcal calibrate DATASET --out DIR' first",
+                            "run 'lidarcal calibrate' again", f" ('{CALIBRATION_FORMAT}')")
+    if data.get("format") != CALIBRATION_FORMAT:
+        raise DatasetError(p, f"unknown format {data.get('format')!r}, expected '{CALIBRATION_FORMAT}'")
     key = "model" if model == "poses" else f"model_{model}"
     if key not in data and data.get("method") == model:
         key = "model"

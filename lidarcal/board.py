@@ -21,7 +21,7 @@ from scipy.optimize import least_squares
 
 from .camera import detect_chessboard, project_points, undistort_pixels
 from .dataset import BoardSpec, CameraModel
-from .geometry import Plane, as_points, nearest_rotation
+from .geometry import MAD_TO_SIGMA, Plane, as_points, nearest_rotation
 
 
 @dataclass(frozen=True)
@@ -294,7 +294,7 @@ def board_blackness(image: np.ndarray, camera: CameraModel, view: BoardView, boa
         for _ in range(3):
             coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
             res = y - A @ coef
-            s = 1.4826 * np.median(np.abs(res[keep])) + 1e-6
+            s = MAD_TO_SIGMA * np.median(np.abs(res[keep])) + 1e-6
             keep = np.abs(res) <= 3.5 * s
         return coef
 

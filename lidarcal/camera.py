@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from .dataset import BoardSpec, CameraModel, DatasetError, read_image
-from .geometry import Plane, as_points
+from .geometry import MAD_TO_SIGMA, Plane, as_points
 
 #: OpenCV model used by :func:`calibrate_intrinsics`: k1, k2, p1, p2 and (with enough views) k3.
 MIN_VIEWS = 3
@@ -231,7 +231,7 @@ def _outlier_mask(r: np.ndarray) -> np.ndarray:
     ok = np.isfinite(r)
     if not ok.any():
         return np.zeros(len(r), bool)
-    s = 1.4826 * np.median(r[ok])
+    s = MAD_TO_SIGMA * np.median(r[ok])
     return ok & (r > max(CORNER_OUTLIER_K * s, 0.5))
 
 
@@ -271,7 +271,7 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     if not np.all(np.isfinite(pred[bad])):
         return None
     r_good = (np.linalg.norm(out - pred, axis=1) / gain)[~bad]
-    limit = max(CORNER_OUTLIER_K * 1.4826 * float(np.median(r_good)), 0.5)
+    limit = max(CORNER_OUTLIER_K * MAD_TO_SIGMA * float(np.median(r_good)), 0.5)
     small = np.maximum(half // 2, MIN_SUBPIX_HALF_WINDOW)
     retry = _subpix(gray, pred[bad], small[bad])
     detector = np.asarray(corners, float)[bad]

@@ -20,14 +20,22 @@ cannot be read; one ``error:`` line).
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .dataset import Dataset, DatasetError, Position, load_dataset, read_scan, read_stripe_image
+from .dataset import (
+    Dataset,
+    DatasetError,
+    Position,
+    load_dataset,
+    read_image,
+    read_scan,
+    read_stripe_image,
+    write_atomic,
+)
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -216,19 +224,15 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
         res.problems.append(str(e))
     if camera is not None:
         try:
-            boards = find_boards(ds, camera)
+            board_image = read_image(ds.board_image, camera.image_size)
+            res.board_thumbnail, res.board_thumb_scale = _thumbnail(board_image)
+            boards = find_boards(ds, camera, board_image)
             res.board_rms_px = tuple(float(b.reprojection_rms_px[0]) for b in boards)
         except DatasetError as e:
             res.problems.append(str(e))
-        try:
-            from .dataset import read_image
-
-            res.board_thumbnail, res.board_thumb_scale = _thumbnail(
-                read_image(ds.board_image, camera.image_size))
-        except DatasetError:
-            pass  # already reported by find_boards
     res.boards = boards
-    rho = dataset_reflectance_ratio(camera, boards, ds.positions) if boards is not None else None
+    rho = None if boards is None else \
+        dataset_reflectance_ratio(camera, boards, ds.positions, laser_colour=ds.lidar.laser_colour)
     todo = ds.positions
     if progress:
         from tqdm import tqdm
@@ -337,16 +341,8 @@ def write_sheet(res: CheckResult, path: str | os.PathLike) -> Path:
     fmt = path.suffix.lower().lstrip(".")
     if fmt not in ("png", "pdf"):
         raise DatasetError(path, "the contact sheet must be a .png or .pdf file")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        contact_sheet(res).savefig(tmp, format=fmt, dpi=200)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomic(path, lambda tmp: contact_sheet(res).savefig(tmp, format=fmt, dpi=200),
+                        ".tmp")
 
 
 # ------------------------------------------------------------------ the command

@@ -45,6 +45,20 @@ def _non_negative(text: str) -> float:
     return v
 
 
+def _chessboard_options(s: argparse.ArgumentParser, example: str, camera: bool = False,
+                        default_from: str | None = None) -> None:
+    """The chessboard's ``--pattern`` and ``--square-mm`` (and the ``--camera`` it is seen by);
+    with ``default_from`` they are optional, read from that file when not given."""
+    req = default_from is None
+    note = "" if req else f" (default: {default_from})"
+    s.add_argument("--pattern", type=_pattern, required=req, default=None,
+                   help=f"inner corners, e.g. {example}{note}")
+    s.add_argument("--square-mm", type=float, required=req, default=None,
+                   help=f"side of a square, mm{note}")
+    if camera:
+        s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidarcal", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
@@ -97,16 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("intrinsics", help="calibrate camera intrinsics from chessboard photos")
     s.add_argument("images", type=Path, help="folder of chessboard images")
-    s.add_argument("--pattern", type=_pattern, required=True, help="inner corners, e.g. 9x6")
-    s.add_argument("--square-mm", type=float, required=True)
+    _chessboard_options(s, "9x6")
     s.add_argument("-o", "--out", type=Path, default=None, help="write camera.json here")
 
     s = sub.add_parser("laser-plane", help="the plane of a line laser from photos of it on a "
                                            "flat chessboard")
     s.add_argument("photos", type=Path, help="folder of lights-on photos of the laser on the board")
-    s.add_argument("--pattern", type=_pattern, required=True, help="inner corners, e.g. 8x5 (or 5x8)")
-    s.add_argument("--square-mm", type=float, required=True)
-    s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
+    _chessboard_options(s, "8x5 (or 5x8)", camera=True)
     s.add_argument("--out", type=Path, required=True, help="plane.json to write")
     s.add_argument("--laser-colour", default="auto",
                    choices=["auto", "red", "green", "blue", "gray"],
@@ -159,10 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("planes", help="classic one-board calibration (Zhang-Pless) of a LiDAR "
                                       "against a camera from photo + scan pairs")
     s.add_argument("folder", type=Path, help="folder of NAME.png|jpg + NAME.csv pairs")
-    s.add_argument("--pattern", type=_pattern, default=None,
-                   help="inner corners, e.g. 8x5 (default: FOLDER/board.json)")
-    s.add_argument("--square-mm", type=float, default=None, help="(default: FOLDER/board.json)")
-    s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
+    _chessboard_options(s, "8x5", camera=True, default_from="FOLDER/board.json")
     s.add_argument("--out", type=Path, required=True, help="output folder for extrinsics.json")
     s.add_argument("--no-figures", action="store_true", help="skip OUT/projection_NAME.png")
 

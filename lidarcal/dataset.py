@@ -14,6 +14,7 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -21,7 +22,7 @@ from typing import Any, Self
 import cv2
 import numpy as np
 
-from .laser_colour import LASER_COLOURS
+from .laser_colour import LASER_COLOURS, laser_response
 
 DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
@@ -88,7 +89,7 @@ class LidarSpec:
     range_max_mm: float
     z_axis_hint: tuple[float, float, float] = DEFAULT_Z_AXIS_HINT
     #: the laser's colour in the stripe images (``lidar.laser_colour``): red, green, blue,
-    #: gray (a NIR laser) or auto; see :func:`lidarcal.stripe.laser_response`
+    #: gray (a NIR laser) or auto; see :func:`lidarcal.laser_colour.laser_response`
     laser_colour: str = "auto"
 
     @property
@@ -402,15 +403,13 @@ def _checked_size(img: np.ndarray, path: Path, image_size: tuple[int, int] | Non
 def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None,
                       laser_colour: str = "auto") -> np.ndarray:
     """A stripe image as uint8: gray images as they are; colour images by
-    :func:`lidarcal.stripe.laser_response` (a dark frame by its brightest channel, a
+    :func:`lidarcal.laser_colour.laser_response` (a dark frame by its brightest channel, a
     lights-on photo by the laser colour's excess over the other channels)."""
     if laser_colour == "gray":
         return read_image(path, image_size, colour="max")
     img = _decode_8bit(path)  # decoded once: a gray image is used as it is
     if img.ndim == 2:
         return _checked_size(img, path, image_size)
-    from .stripe import laser_response
-
     return _checked_size(laser_response(img[:, :, :3], laser_colour), path, image_size)
 
 
@@ -571,19 +570,29 @@ def read_sweep(path: Path, lidar: LidarSpec | None = None):
     return pd.DataFrame({"psi_deg": psi, "angle_deg": ang, "range_mm": rng})
 
 
-def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
-    """Write JSON to a temporary file in the same folder, then rename (never half-written)."""
+def write_atomic(path: str | os.PathLike, write: Callable[[Path], object],
+                 suffix: str | None = None) -> Path:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``
+    (never half-written; the temporary file is removed on any error). ``suffix``: the
+    temporary file's (default ``path``'s own, for writers that infer the format from it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix if suffix is None
+                               else suffix, dir=path.parent)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        write(Path(tmp))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return path
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
+    """Write JSON to a temporary file in the same folder, then rename (never half-written)."""
+    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
+    write_atomic(path, lambda tmp: tmp.write_text(text), ".tmp")
 
 
 def _json_default(o: Any) -> Any:

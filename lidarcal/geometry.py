@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+#: Median absolute deviation -> standard deviation for Gaussian noise (1 / Phi^-1(3/4)).
+MAD_TO_SIGMA = 1.4826
+
 
 def as_points(points: np.ndarray, dim: int = 3) -> np.ndarray:
     """Return ``points`` as a float array of shape (N, dim); a single point becomes (1, dim)."""

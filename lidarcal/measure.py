@@ -70,7 +70,7 @@ from scipy.optimize import brentq, least_squares
 from scipy.sparse import csgraph
 
 from .dataset import LidarSpec
-from .geometry import Plane, Pose, fit_circle_2d, fit_plane, plane_basis
+from .geometry import MAD_TO_SIGMA, Plane, Pose, fit_circle_2d, fit_plane, plane_basis
 from .ranging import ranging_of
 
 #: inlier band of the disc plane, in robust range-noise sigmas
@@ -216,12 +216,21 @@ def sweep_points(sweep: pd.DataFrame, model: PoseFunction) -> np.ndarray:
     angle and range stay in the DataFrame). ``model.pose`` is called once per
     distinct psi; the rest is vectorised.
     """
-    psi, ang, rng = _columns(sweep)
-    rng = ranging_of(model).correct(rng)  # range offset (lidarcal.ranging) before eq. (28)
+    return returns_points(*_columns(sweep), model)
+
+
+def returns_points(psi_deg: np.ndarray, angle_deg: np.ndarray, range_mm: np.ndarray,
+                   model: PoseFunction) -> np.ndarray:
+    """Camera-frame points (N, 3) of LiDAR returns, eq. (28):
+    ``X_c = R(psi) [rho cos theta, rho sin theta, 0]^T + T(psi)``, with ``rho`` the range
+    corrected by the model's ranging terms (:func:`lidarcal.ranging.ranging_of`) and
+    ``model.pose`` called once per distinct ``psi``; NaN ranges give NaN rows."""
+    rng = ranging_of(model).correct(np.asarray(range_mm, dtype=float))
+    psi = np.broadcast_to(np.asarray(psi_deg, dtype=float), rng.shape)
     upsi, inv = np.unique(psi, return_inverse=True)
     R, T = _poses(model, upsi)
-    th = np.radians(ang)
-    local = np.column_stack([rng * np.cos(th), rng * np.sin(th), np.zeros_like(th)])  # eq. (6)
+    th = np.radians(np.asarray(angle_deg, dtype=float))
+    local = np.column_stack([rng * np.cos(th), rng * np.sin(th), np.zeros_like(rng)])  # eq. (6)
     return np.einsum("nij,nj->ni", R[inv], local) + T[inv]
 
 
@@ -266,7 +275,7 @@ def _mad_sigma(x: np.ndarray) -> float:
     x = x[np.isfinite(x)]
     if len(x) == 0:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+    return float(MAD_TO_SIGMA * np.median(np.abs(x - np.median(x))))
 
 
 def _range_noise(r: np.ndarray) -> float:
@@ -275,7 +284,7 @@ def _range_noise(r: np.ndarray) -> float:
     d2 = d2[np.isfinite(d2)]
     if len(d2) < 10:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(d2)) / np.sqrt(6.0))
+    return float(MAD_TO_SIGMA * np.median(np.abs(d2)) / np.sqrt(6.0))
 
 
 _DIRS = ((0, 1), (0, -1), (1, 0), (-1, 0))

@@ -231,9 +231,11 @@ def _rho_picks(positions: list[Position], n_images: int = 5) -> list[int]:
     return sorted({round(k) for k in ks})
 
 
-def find_boards(ds: Dataset, camera: CameraModel) -> tuple[BoardView, BoardView]:
-    """Both chessboards of the V in ``board.png`` (section 1.2)."""
-    img = read_image(ds.board_image, camera.image_size)
+def find_boards(ds: Dataset, camera: CameraModel, image: np.ndarray | None = None
+                ) -> tuple[BoardView, BoardView]:
+    """Both chessboards of the V in ``board.png`` (section 1.2); ``image``: that file
+    already decoded (:func:`lidarcal.dataset.read_image`), else it is read here."""
+    img = read_image(ds.board_image, camera.image_size) if image is None else image
     try:
         return find_v_boards(img, ds.v_board, camera)
     except ValueError as e:

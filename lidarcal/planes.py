@@ -64,7 +64,6 @@ EXTRINSICS_FORMAT = "lidarcal-extrinsics/1"
 #: Views needed to cross-check the board segments (the linear H has nine unknowns, each view
 #: gives two constraints).
 MIN_VIEWS_CONSENSUS = 5
-_MAD = 1.4826
 
 
 # ---------------------------------------------------------------------------
@@ -89,12 +88,6 @@ class BoardPlane:
     corners_px: np.ndarray
     sigma_px: float
     board: BoardSpec
-
-    def sigma_at(self, X: np.ndarray) -> np.ndarray:
-        """1-sigma (mm) of the plane's distance at camera-frame points ``X`` (N, 3)."""
-        X = np.atleast_2d(X)
-        g = np.column_stack([X @ self.basis, -np.ones(len(X))])  # d(n.X - d)/d(params)
-        return np.sqrt(np.einsum("ij,jk,ik->i", g, self.cov, g))
 
 
 def find_board(image: np.ndarray, board: BoardSpec) -> list[tuple[np.ndarray, BoardSpec]]:

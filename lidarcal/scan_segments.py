@@ -22,7 +22,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-_MAD = 1.4826  # MAD -> standard deviation for Gaussian noise
+from .geometry import MAD_TO_SIGMA
+
 _TAN_MAX_INCIDENCE = 6.0  # surfaces up to ~80 deg incidence count as continuous
 # a piece is two lines only if the second line at least halves the robust residual scale: a
 # kink (the hinge, a mount) does; structure along one surface (a staircase of dark squares read
@@ -75,7 +76,7 @@ def estimate_range_noise(range_mm: np.ndarray) -> float:
     if len(d2) < 5:
         raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
                          "range noise; pass range_noise_mm")
-    return float(_MAD * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+    return float(MAD_TO_SIGMA * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
 
 
 def estimate_range_quantum(range_mm: np.ndarray) -> float:
@@ -171,7 +172,7 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
 
 def _mad_scale(r: np.ndarray) -> float:
     """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
-    return float(_MAD * np.median(np.abs(r - np.median(r))))
+    return float(MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
 
 
 def _two_line_scale(p: np.ndarray, k: int) -> float:
@@ -254,7 +255,7 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         r = line.distance(p)
         # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
         # re-estimating it from already-trimmed inliers
-        scale = max(_MAD * np.median(np.abs(r)), 0.25 * sigma)
+        scale = max(MAD_TO_SIGMA * np.median(np.abs(r)), 0.25 * sigma)
         new = np.abs(r) <= k * scale
         if new.sum() < 2:
             break

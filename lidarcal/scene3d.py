@@ -218,9 +218,9 @@ def screenshot(p: pv.Plotter, path: str | os.PathLike | None = None) -> np.ndarr
     if path is not None:
         import matplotlib.image as mpimg
 
-        from .io.clouds import _atomic
+        from .dataset import write_atomic
 
-        _atomic(Path(path), lambda t: mpimg.imsave(t, img))
+        write_atomic(path, lambda t: mpimg.imsave(t, img))
     p.close()
     return img
 

@@ -48,22 +48,29 @@ def stripe_quality(pts: np.ndarray, n_rejected: int, fit_rms_px: float, width_px
         return q
     c = pts.mean(0)
     _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-    t_dir, n_dir = vt[0], vt[1]
-    P = _band_candidates(mask, origin, c, n_dir)
-    band = np.abs(P @ n_dir) <= 2.0
+    q["coverage"] = _coverage(pts - c, _band_candidates(mask, origin, c, vt[1]), vt[0], vt[1])
+    return q
+
+
+def _coverage(pts_c: np.ndarray, P: np.ndarray, t_dir: np.ndarray, n_dir: np.ndarray,
+              half: float = 2.0, bin_px: float = 4.0) -> float:
+    """Share of the board crossed along the stripe: of the ``bin_px`` bins along ``t_dir``
+    that hold a mask pixel within ``half`` px of the centres' line, the share that also
+    hold a centre. ``pts_c`` (N, 2) the centres and ``P`` (M, 2) the candidate mask
+    pixels, both minus the centres' mean; ``t_dir``, ``n_dir`` the line's unit direction
+    and normal."""
+    band = np.abs(P @ n_dir) <= half
     if not band.any():
-        return q
+        return 0.0
     tm = P[band] @ t_dir
     lo = tm.min()
-    nb = int((tm.max() - lo) // 4) + 1
+    nb = int((tm.max() - lo) // bin_px) + 1
     board_bins = np.zeros(nb, bool)
-    board_bins[((tm - lo) // 4).astype(int)] = True
-    tc = ((pts - c) @ t_dir - lo) // 4
-    tc = tc[(tc >= 0) & (tc < nb)].astype(int)
+    board_bins[((tm - lo) // bin_px).astype(int)] = True
+    tc = (pts_c @ t_dir - lo) // bin_px
     hit = np.zeros(nb, bool)
-    hit[tc] = True
-    q["coverage"] = float((hit & board_bins).sum() / max(board_bins.sum(), 1))
-    return q
+    hit[tc[(tc >= 0) & (tc < nb)].astype(int)] = True
+    return float((hit & board_bins).sum() / max(board_bins.sum(), 1))
 
 
 def _band_candidates(mask: np.ndarray, origin: tuple[int, int], c: np.ndarray,

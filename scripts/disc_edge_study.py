@@ -23,14 +23,6 @@ from lidarcal.synthetic.lidar import beam_angles_deg, simulate_scans
 from lidarcal.synthetic.truth import STREAM_SWEEP, _rng, make_truth
 
 
-class TruePoses:
-    def __init__(self, truth):
-        self.truth = truth
-
-    def pose(self, psi_deg: float):
-        return self.truth.pose_at(psi_deg)
-
-
 def half_share(rig_name: str, footprint: str, seed: int, diameters=(100.0, 140.0, 200.0)) -> list[dict]:
     """Half-share diameter, fit sigma and beam spacing of each disc of one simulated rig."""
     rig = get_rig(rig_name).with_(footprint_model=footprint, disc_diameters_mm=tuple(diameters),
@@ -46,7 +38,7 @@ def half_share(rig_name: str, footprint: str, seed: int, diameters=(100.0, 140.0
         P, B = r.shape
         sweep = pd.DataFrame({"psi_deg": np.repeat(d.psi_deg, B), "angle_deg": np.tile(angles, P),
                               "range_mm": np.where(r > 0, r, np.nan).ravel()})
-        m = measure_disc(sweep, TruePoses(truth), lidar)
+        m = measure_disc(sweep, truth, lidar)
         origin = truth.pose_at(float(np.median(d.psi_deg))).T
         rows.append({"rig": rig_name, "footprint": footprint, "seed": seed, "true_mm": 2 * d.disc.radius,
                      "half_mm": m.diameter_mm, "fit_sigma_mm": max(m.diameter_std_mm, random_sigma_mm(m)),

@@ -11,6 +11,7 @@ from lidarcal.synthetic import simulate
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = REPO / "data" / "paper_rig"
+OPENCV_LEFT = REPO / "tests" / "data" / "opencv_left"
 
 
 @pytest.fixture(scope="session")
@@ -19,6 +20,15 @@ def small_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("sim") / "paper4"
     return simulate(out, seed=11, rig="paper", n_positions=4, with_intrinsics=False,
                     with_sweeps=False)
+
+
+@pytest.fixture(scope="session")
+def opencv_photos() -> list[Path]:
+    """OpenCV's sample chessboard photos (left*.jpg, 9x6; tests/data/opencv_left/README.md)."""
+    paths = sorted(OPENCV_LEFT.glob("left*.jpg"))
+    if len(paths) < 10:
+        pytest.skip("OpenCV sample chessboard photos are not in tests/data/opencv_left")
+    return paths
 
 
 @pytest.fixture

@@ -26,7 +26,6 @@ PAPER_CAM = CameraModel(np.array([[2757.4, 0, 831.6], [0, 2758.6, 638.9], [0, 0,
                         np.array([-0.076, 0.371, 0, 0, 0]), (1624, 1234))
 WIDE_CAM = CameraModel(np.array([[1187.0, 0, 968.5], [0, 1189.5, 597.0], [0, 0, 1.0]]),
                        np.array([-0.30, 0.12, 0.0008, -0.0006, -0.02]), (1920, 1200))
-OPENCV_LEFT = Path(__file__).parent / "data" / "opencv_left"
 
 
 def _points_in_view(cam: CameraModel, rng: np.random.Generator, n: int) -> np.ndarray:
@@ -104,14 +103,6 @@ def test_empty_inputs() -> None:
 
 
 # --- intrinsics on real photos: OpenCV's sample set (see tests/data/opencv_left/README.md) ---
-
-@pytest.fixture(scope="module")
-def opencv_photos() -> list[Path]:
-    paths = sorted(OPENCV_LEFT.glob("left*.jpg"))
-    if len(paths) < 10:
-        pytest.skip("OpenCV sample chessboard photos are not in tests/data/opencv_left")
-    return paths
-
 
 @pytest.fixture(scope="module")
 def opencv_result(opencv_photos):

@@ -154,3 +154,26 @@ def test_cli_cloud_bad_input_one_line(tmp_path, truth_cal):
 
         dataset_clouds(SIM, truth_cal, ["nope"], tmp_path / "y.ply")
 
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    (None, "calibration.json: missing; run 'lidarcal calibrate"),
+    ("{not json", "calibration.json: not valid JSON .*; run 'lidarcal calibrate' again"),
+    ("[1, 2]", "calibration.json: must hold a JSON object"),
+    ('{"format": "lidarcal-measurements/1"}', "unknown format 'lidarcal-measurements/1', expected"),
+])
+def test_bad_calibration_json_one_line(tmp_path, text, match):
+    """A missing, unreadable, non-object or foreign calibration.json: DatasetError naming the
+    file from load_calibration and from the report's reader; the CLI prints one line, exit 2."""
+    from lidarcal.report.inputs import _read_json
+
+    path = tmp_path / "calibration.json"
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(DatasetError, match=match):
+        load_calibration(tmp_path)
+    with pytest.raises(DatasetError, match="calibration.json: "):
+        _read_json(tmp_path, "calibration.json", "lidarcal-calibration/")
+    r = _lidarcal("pose", str(path), "--psi", "0")
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith("error: ") and str(path) in r.stderr

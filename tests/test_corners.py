@@ -23,7 +23,6 @@ from lidarcal.dataset import BoardSpec, CameraModel
 
 REPO = Path(__file__).resolve().parents[1]
 TAPAS = REPO / "data" / "real_tapas"
-OPENCV_LEFT = REPO / "tests" / "data" / "opencv_left"
 BUNDLED = REPO / "data" / "paper_rig"
 
 
@@ -94,14 +93,6 @@ def test_tapas_views_never_pass_dragged_corners() -> None:
     assert found >= 4
 
 
-@pytest.fixture(scope="module")
-def left_photos() -> list[Path]:
-    paths = sorted(OPENCV_LEFT.glob("left*.jpg"))
-    if len(paths) < 10:
-        pytest.skip("OpenCV sample chessboard photos are not in tests/data/opencv_left")
-    return paths
-
-
 def _plain_opencv(paths: list[Path], pattern=(9, 6)):
     """OpenCV's tutorial recipe: classic detector, cornerSubPix 11x11, calibrateCamera."""
     obj = BoardSpec(pattern, 1.0).object_points().astype(np.float32)
@@ -120,7 +111,7 @@ def _plain_opencv(paths: list[Path], pattern=(9, 6)):
     return CameraModel(K, np.asarray(d).ravel()[:5], size), corners
 
 
-def test_heldout_reprojection_against_plain_opencv(left_photos) -> None:
+def test_heldout_reprojection_against_plain_opencv(opencv_photos) -> None:
     """Calibrate on half of OpenCV's sample photos, reproject the other half (each method
     with its own corners): lidarcal within 1.1x of plain cv2.calibrateCamera (measured
     0.18 against 0.42 px)."""
@@ -128,8 +119,8 @@ def test_heldout_reprojection_against_plain_opencv(left_photos) -> None:
     obj = board.object_points()
     sq = {"lidarcal": [0.0, 0], "opencv": [0.0, 0]}
     for split in (0, 1):
-        train = [p for i, p in enumerate(left_photos) if i % 2 == split]
-        test = [p for i, p in enumerate(left_photos) if i % 2 != split]
+        train = [p for i, p in enumerate(opencv_photos) if i % 2 == split]
+        test = [p for i, p in enumerate(opencv_photos) if i % 2 != split]
         ours = calibrate_intrinsics(train, board).camera
         cv_cam, _ = _plain_opencv(train)
         _, cv_corners = _plain_opencv(test)
@@ -146,10 +137,10 @@ def test_heldout_reprojection_against_plain_opencv(left_photos) -> None:
     assert rms["lidarcal"] <= 1.1 * rms["opencv"]
 
 
-def test_k3_by_heldout_views_and_camera_json(left_photos) -> None:
+def test_k3_by_heldout_views_and_camera_json(opencv_photos) -> None:
     """A narrow lens: k3 stays fixed (free k3 does not predict held-out views better);
     camera.json carries every view's reprojection RMS and the cross-validation."""
-    r = calibrate_intrinsics(left_photos, BoardSpec((9, 6), 25.0))
+    r = calibrate_intrinsics(opencv_photos, BoardSpec((9, 6), 25.0))
     d = r.to_dict()
     assert d["k3"] == "fixed" and r.camera.dist[4] == 0.0
     h = d["heldout_rms_px"]

@@ -27,14 +27,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SIM = ROOT / "data" / "paper_rig"
 
 
-class TruePoses:
-    def __init__(self, truth):
-        self.truth = truth
-
-    def pose(self, psi_deg: float):
-        return self.truth.pose_at(psi_deg)
-
-
 def discs(rig_name: str, footprint: str, seed: int) -> list[dict]:
     rig = get_rig(rig_name).with_(footprint_model=footprint, disc_diameters_mm=(100.0, 140.0, 200.0),
                                   n_discs=3)
@@ -48,7 +40,7 @@ def discs(rig_name: str, footprint: str, seed: int) -> list[dict]:
         P, B = r.shape
         sweep = pd.DataFrame({"psi_deg": np.repeat(d.psi_deg, B), "angle_deg": np.tile(beam_angles_deg(rig), P),
                               "range_mm": np.where(r > 0, r, np.nan).ravel()})
-        m = measure_disc(sweep, TruePoses(truth), lidar)
+        m = measure_disc(sweep, truth, lidar)
         u = beam_spacing_mm(m.center_mm, truth.pose_at(float(np.median(d.psi_deg))).T, rig.lidar_angle_step_deg)
         out.append({"true": 2 * d.disc.radius, "half": m.diameter_mm, "sigma": m.diameter_std_mm, "u": u,
                     "mixed": mixed_share(m.info)})

@@ -20,13 +20,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from lidarcal.cli import COMMANDS
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = REPO / "data" / "paper_rig"
-OPENCV_LEFT = Path(__file__).parent / "data" / "opencv_left"
 LIDARCAL = shutil.which("lidarcal", path=str(Path(sys.executable).parent)) or "lidarcal"
 
 # subcommand -> the test that runs it end to end in a subprocess: a test of this file, or
@@ -99,7 +97,7 @@ def _is_test(ref: str) -> bool:
         return callable(globals().get(ref))
     file, name = ref.split("::")
     source = (Path(__file__).parent / file).read_text()
-    return re.search(rf"^def {re.escape(name)}\(", source, re.M) is not None
+    return re.search(rf"^def {re.escape(name)}\(", source, re.MULTILINE) is not None
 
 
 def lidarcal(*args, cwd: Path) -> subprocess.CompletedProcess:
@@ -252,16 +250,14 @@ CHECKS = {"simulate": _check_simulate, "intrinsics": _check_intrinsics,
           "check": _check_check, "cloud": _check_cloud, "report": _check_report}
 
 
-def test_intrinsics_on_real_photos(tmp_path):
+def test_intrinsics_on_real_photos(tmp_path, opencv_photos):
     """OpenCV's real sample photos (13 views, 9x6): exit 0, camera.json written, K as OpenCV's
     own tutorial recipe (findChessboardCorners + cornerSubPix + calibrateCamera) to 0.5 %
     (the tolerance of test_camera's detector comparison); a view without the board is named
     in a warning and not used."""
     import cv2
 
-    photos = sorted(OPENCV_LEFT.glob("left*.jpg"))
-    if len(photos) < 10:
-        pytest.skip("OpenCV sample photos are not in tests/data/opencv_left")
+    photos = opencv_photos
     folder = tmp_path / "photos"
     folder.mkdir()
     for ph in photos:

@@ -121,7 +121,7 @@ def test_steep_stripe_covers_the_board(seed, slope) -> None:
     """A steep stripe (sampled by rows) is judged on the mask in image axes: it crosses the
     whole board, so its coverage is near 1 and it passes the gates (a transposed mask in the
     gate gave it a share of a wrong region)."""
-    img, f = _lit_board(seed, 0.0, -100.0)  # the lit board without the laser in the crop
+    img, _ = _lit_board(seed, 0.0, -100.0)  # the lit board without the laser in the crop
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:H, 0:W].astype(float)
     g = lambda yy: W / 2 + slope * (yy - H / 2)

@@ -7,28 +7,12 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.stripe_quality import stripe_quality
+from lidarcal.stripe_quality import _band_candidates, _coverage, stripe_quality
 
 
-def _coverage_brute_force(pts: np.ndarray, mask: np.ndarray, origin: tuple[int, int]) -> float:
-    """The coverage of :func:`stripe_quality` from every mask pixel (its definition)."""
-    c = pts.mean(0)
-    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-    t_dir, n_dir = vt[0], vt[1]
-    ys, xs = np.nonzero(mask)
-    P = np.column_stack([xs + origin[0], ys + origin[1]]).astype(float) - c
-    band = np.abs(P @ n_dir) <= 2.0
-    if not band.any():
-        return 0.0
-    tm = P[band] @ t_dir
-    lo = tm.min()
-    nb = int((tm.max() - lo) // 4) + 1
-    board_bins = np.zeros(nb, bool)
-    board_bins[((tm - lo) // 4).astype(int)] = True
-    tc = ((pts - c) @ t_dir - lo) // 4
-    hit = np.zeros(nb, bool)
-    hit[tc[(tc >= 0) & (tc < nb)].astype(int)] = True
-    return float((hit & board_bins).sum() / max(board_bins.sum(), 1))
+def _band(P: np.ndarray, n_dir: np.ndarray) -> set[tuple[float, float]]:
+    """The pixels of ``P`` within 2 px of the centres' line (the coverage gate's band)."""
+    return set(map(tuple, P[np.abs(P @ n_dir) <= 2.0].tolist()))
 
 
 @pytest.mark.parametrize("seed", range(12))
@@ -51,7 +35,14 @@ def test_coverage_equals_whole_mask_scan(seed: int) -> None:
     s = s[(s < -0.1 * max(H, W)) | (s > 0.05 * max(H, W))]  # a gap: coverage below 1
     pts = centre + np.outer(s, [np.cos(ang), np.sin(ang)]) + rng.normal(0, 0.3, (len(s), 2))
     q = stripe_quality(pts, 0, 0.3, 3.0, np.full(len(pts), 20.0), mask, origin)
-    assert q["coverage"] == _coverage_brute_force(pts, mask, origin)
+    # the band gathered along the line is the band of a scan of every mask pixel
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
+    ys, xs = np.nonzero(mask)
+    P_all = np.column_stack([xs + origin[0], ys + origin[1]]).astype(float) - c
+    band_all = _band(P_all, vt[1])
+    assert _band(_band_candidates(mask, origin, c, vt[1]), vt[1]) == band_all
+    assert q["coverage"] == _coverage(pts - c, P_all, vt[0], vt[1])
     assert 0.0 <= q["coverage"] <= 1.0
 
 

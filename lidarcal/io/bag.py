@@ -338,7 +338,7 @@ def _write_png(path: Path, img: np.ndarray) -> None:
 class _ScanGeometry:
     """The beam layout of the first scan; every later scan must match it."""
 
-    def __init__(self, s: Scan, topic: str, bag: Path, rig: RigFile):
+    def __init__(self, s: Scan, topic: str, rig: RigFile):
         self.s, self.topic, self.n = s, topic, s.range_mm.size
         self.angles = s.angle_min_deg + np.arange(self.n) * s.angle_step_deg
         got = {"angle_min_deg": s.angle_min_deg, "angle_max_deg": float(self.angles[-1]),
@@ -550,7 +550,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
                 if clock.mode[c.topic] == "log":  # received after its last beam
                     s = replace(s, t0=2 * s.t0 - s.t1, t1=s.t0)
                 if geom is None:
-                    geom = _ScanGeometry(s, c.topic, bag, rigf)
+                    geom = _ScanGeometry(s, c.topic, rigf)
                 geom.check(s, bag)
                 scan_t.append(t)
                 for w, a0, a1 in windows:

@@ -27,11 +27,12 @@ file is never half-written.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+
+from ..dataset import write_atomic
 
 FORMATS = (".ply", ".pcd", ".vtp", ".csv")
 
@@ -49,21 +50,6 @@ def _check(points: np.ndarray, attributes: Mapping[str, np.ndarray]) -> tuple[np
             raise ValueError(f"attribute name {name!r} must be an identifier (letters, digits, _)")
         attrs[name] = a.astype(np.int32) if a.dtype.kind in "iub" else a.astype(np.float64)
     return pts, attrs
-
-
-def _atomic(path: Path, write) -> Path:
-    """Call ``write(tmp_path)`` on a temporary file beside ``path`` (same suffix), then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def _records(points: np.ndarray, attrs: dict, xyz_dtype: str = "<f4") -> np.ndarray:
@@ -84,7 +70,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, attributes: Mapping[s
     el = PlyElement.describe(_records(pts, attrs), "vertex")
     ply = PlyData([el], text=False, byte_order="<",
                   comments=["lidarcal point cloud, units mm and degrees"])
-    return _atomic(Path(path), lambda p: ply.write(str(p)))
+    return write_atomic(path, lambda p: ply.write(str(p)))
 
 
 def write_pcd(path: str | os.PathLike, points: np.ndarray, attributes: Mapping[str, np.ndarray] = {}) -> Path:
@@ -106,7 +92,7 @@ def write_pcd(path: str | os.PathLike, points: np.ndarray, attributes: Mapping[s
             f.write(header.encode("ascii"))
             f.write(rec.tobytes())
 
-    return _atomic(Path(path), write)
+    return write_atomic(path, write)
 
 
 def write_vtp(path: str | os.PathLike, points: np.ndarray, attributes: Mapping[str, np.ndarray] = {}) -> Path:
@@ -117,7 +103,7 @@ def write_vtp(path: str | os.PathLike, points: np.ndarray, attributes: Mapping[s
     poly = pv.PolyData(pts)
     for k, v in attrs.items():
         poly.point_data[k] = v
-    return _atomic(Path(path), lambda p: poly.save(str(p), binary=True))
+    return write_atomic(path, lambda p: poly.save(str(p), binary=True))
 
 
 def write_csv(path: str | os.PathLike, points: np.ndarray, attributes: Mapping[str, np.ndarray] = {}) -> Path:
@@ -126,7 +112,7 @@ def write_csv(path: str | os.PathLike, points: np.ndarray, attributes: Mapping[s
 
     pts, attrs = _check(points, attributes)
     df = pd.DataFrame({"x_mm": pts[:, 0], "y_mm": pts[:, 1], "z_mm": pts[:, 2], **attrs})
-    return _atomic(Path(path), lambda p: df.to_csv(p, index=False, float_format="%.6f"))
+    return write_atomic(path, lambda p: df.to_csv(p, index=False, float_format="%.6f"))
 
 
 WRITERS = {".ply": write_ply, ".pcd": write_pcd, ".vtp": write_vtp, ".csv": write_csv}

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry import Pose
 from ..ranging import RangingModel
-from ..turntable import Axis, RigidModel
+from ..turntable import RIGID_FORMULA, Axis, RigidModel
 from .params import _STEPS, N_RIG, _Base, _poses, _rig
 
 if TYPE_CHECKING:
@@ -125,8 +125,6 @@ class JointModel:
         return self._with_angle_sigma(cols, psi, self.jitter_deg) if jitter else cols
 
     def to_dict(self) -> dict:
-        from ..turntable import RIGID_FORMULA
-
         return {"type": "joint", "formula": RIGID_FORMULA, "axis": self.axis.to_dict(),
                 "psi_ref_deg": float(self.psi_ref_deg),
                 "pose_ref": {"R": self.R_ref.tolist(), "T_mm": self.T_ref.tolist()},

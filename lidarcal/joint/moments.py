@@ -29,29 +29,14 @@ from __future__ import annotations
 import numpy as np
 
 from .noise import _Groups
-from .params import _STEPS, N_RIG, _poses, _rig
+from .params import N_RIG, _poses, _rig
 from .problem import _Problem
-from .solver import LMResult, _irls_weights, _rho
+from .solver import LMResult, _irls_weights, _lm_scaling, _lm_step, _rho
 
 
 def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
     """``V^-1/2`` of every column of ``h`` (rows grouped and sorted by ``grp.gid``)."""
     return grp.whiten_columns(h)
-
-
-def _pose_derivatives(prob: _Problem, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """R (N, 3, 3), T (N, 3) at ``xr`` and d[R_x, R_y, R_z, T] / d rig (N, 12, 10)."""
-    R, T = _poses(*_rig(xr, prob.base), prob.t)
-    h = _STEPS[:N_RIG]
-    G = np.zeros((len(prob.t), 12, N_RIG))
-    for j in range(N_RIG):
-        dx = np.zeros(N_RIG)
-        dx[j] = h[j]
-        Rp, Tp = _poses(*_rig(xr[:N_RIG] + dx, prob.base), prob.t)
-        Rm, Tm = _poses(*_rig(xr[:N_RIG] - dx, prob.base), prob.t)
-        G[:, :, j] = (np.concatenate([Rp.transpose(0, 2, 1).reshape(-1, 9), Tp], 1)
-                      - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
-    return R, T, G
 
 
 class _MomentProblem:
@@ -96,7 +81,7 @@ class _MomentProblem:
             z = R[pos, :, 2]
             return (np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam]), None,
                     np.column_stack([z, -np.einsum("gi,gi->g", T[pos], z)]), None)
-        R, T, G = _pose_derivatives(prob, xr)
+        R, T, G = prob.pose_derivatives(xr)
         n_pos = len(prob.t)
         pos = np.repeat(np.arange(n_pos), 2)
         brd = np.tile([0, 1], n_pos)
@@ -204,12 +189,9 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
                  + Jp.reshape(-1, mp.n_par).T @ QJp.reshape(-1, mp.n_par) + (Jr.T * Wr) @ Jr)
             g = (QJs.reshape(-1, mp.n_par).T @ cs.ravel() + QJp.reshape(-1, mp.n_par).T @ cp.ravel()
                  + (Jr.T * Wr) @ prob.prior_residuals(xi))
-            D = np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
+            D = _lm_scaling(H)
             while True:
-                try:
-                    step = -np.linalg.solve(H + lam * np.diag(D), g)
-                except np.linalg.LinAlgError:
-                    step = -np.linalg.lstsq(H + lam * np.diag(D), g, rcond=None)[0]
+                step = _lm_step(H, g, lam, D)
                 if abs(float(g @ step)) <= inner_tol * max(q, 1e-300):
                     step = None  # converged: the predicted decrease is below rounding
                     break

@@ -7,9 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import plane_basis, unit
+from ..geometry import MAD_TO_SIGMA, plane_basis, unit
 
-MAD_TO_SIGMA = 1.4826
 _CHI1_MEDIAN = 0.45493642311957283  # median of the chi-square distribution with 1 dof
 N_RIG = 10  # axis direction 2, axis point 2, reference rotation 3, reference centre 3
 N_BOARD = 6  # per board: rotation 3, translation 3

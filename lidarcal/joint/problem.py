@@ -139,6 +139,21 @@ class _Problem:
             return self.data.scan_xy
         return self.data.scan_xy - (rv[0] + rv[1] * self.dark)[:, None] * self.scan_u
 
+    def pose_derivatives(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R (N, 3, 3), T (N, 3) at the rig parameters ``x[:10]`` and d[R_x, R_y, R_z, T] /
+        d rig (N, 12, 10): the pose columns at every position, by central differences."""
+        R, T = _poses(*_rig(x, self.base), self.t)
+        h = _STEPS[:N_RIG]
+        G = np.zeros((len(self.t), 12, N_RIG))
+        for j in range(N_RIG):
+            dx = np.zeros(N_RIG)
+            dx[j] = h[j]
+            Rp, Tp = _poses(*_rig(x[:N_RIG] + dx, self.base), self.t)
+            Rm, Tm = _poses(*_rig(x[:N_RIG] - dx, self.base), self.t)
+            G[:, :, j] = (np.concatenate([Rp.transpose(0, 2, 1).reshape(-1, 9), Tp], 1)
+                          - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
+        return R, T, G
+
     def jacobian(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
         """Jacobian of :meth:`normalised` wrt the full parameters (rig 10 + boards 12).
 
@@ -151,21 +166,10 @@ class _Problem:
         n_par = len(x)
         x, rv = self.split(x)
         n_main = len(x)  # rig (+ boards); the ranging columns follow
-        k, a, R_ref, T_ref = _rig(x, self.base)
-        R, T = _poses(k, a, R_ref, T_ref, self.t)
+        R, T, G = self.pose_derivatives(x)
         bR, bT = _boards(x, self.base)
         nb = bR[:, :, 2]
         db = np.einsum("ij,ij->i", nb, bT)
-        # d (pose columns x, y, z and T at every position) / d rig parameters: (N, 12, 10)
-        h = _STEPS[:N_RIG]
-        G = np.zeros((len(self.t), 12, N_RIG))
-        for j in range(N_RIG):
-            dx = np.zeros(n_main)
-            dx[j] = h[j]
-            Rp, Tp = _poses(*_rig(x + dx, self.base), self.t)
-            Rm, Tm = _poses(*_rig(x - dx, self.base), self.t)
-            G[:, :, j] = (np.concatenate([Rp.transpose(0, 2, 1).reshape(-1, 9), Tp], 1)
-                          - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
         # d (normal, d) of both boards / d board parameters: (2, 4, 6)
         Gb = np.zeros((2, 4, N_BOARD))
         if n_main > N_RIG:

@@ -42,12 +42,9 @@ def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.
         Jw = J * w[:, None]
         H = _mm(Jw.T, J)
         g = _mm(Jw.T, r[:, None])[:, 0]
-        D = np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
+        D = _lm_scaling(H)
         while True:
-            try:
-                step = -np.linalg.solve(H + lam * np.diag(D), g)
-            except np.linalg.LinAlgError:
-                step = -np.linalg.lstsq(H + lam * np.diag(D), g, rcond=None)[0]
+            step = _lm_step(H, g, lam, D)
             rn = fun(x + step)
             nfev += 1
             cn = 0.5 * f_scale**2 * float(np.sum(_rho(rn / f_scale, loss)))
@@ -65,6 +62,21 @@ def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.
             status = 1
             break
     return LMResult(x, cost, nfev, status)
+
+
+def _lm_scaling(H: np.ndarray) -> np.ndarray:
+    """Marquardt's diagonal scaling ``diag(H)``, floored at 1e-12 of its largest entry."""
+    return np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
+
+
+def _lm_step(H: np.ndarray, g: np.ndarray, lam: float, D: np.ndarray) -> np.ndarray:
+    """The Levenberg-Marquardt step ``dx = -(H + lam diag(D))^-1 g`` (least squares when
+    the damped system is singular)."""
+    A = H + lam * np.diag(D)
+    try:
+        return -np.linalg.solve(A, g)
+    except np.linalg.LinAlgError:
+        return -np.linalg.lstsq(A, g, rcond=None)[0]
 
 
 def _rho(z: np.ndarray, loss: str) -> np.ndarray:
@@ -99,7 +111,7 @@ def _irls_weights(z: np.ndarray, loss: str) -> np.ndarray:
     raise ValueError(f"unknown loss {loss!r}")
 
 
-def _jacobian(prob: _Problem, n_board: bool) -> tuple[np.ndarray, np.ndarray]:
+def _jacobian(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
     """Jacobian of the normalised residuals (scan, stripe, ranging prior, corners) wrt rig
     (10), board (12) and ranging (``prob.n_ranging``) parameters, at x = 0. Returns (residuals, J)."""
     n = N_RIG + 2 * N_BOARD + prob.n_ranging
@@ -112,7 +124,7 @@ def _covariance(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
     """Covariance (10 + n_ranging, 10 + n_ranging) of the rig and ranging parameters, the
     unobservable directions (10 + n_ranging, q), s^2. The rig block is marginal over the
     ranging terms: estimating them shows as larger rig sigmas."""
-    r, J = _jacobian(prob, True)
+    r, J = _jacobian(prob)
     n_main = len(r) - len(prob.corner_residuals(prob.base.board_R, prob.base.board_T))
     w = _irls_weights(r / f_scale, loss)
     Jw = J * np.sqrt(w)[:, None]

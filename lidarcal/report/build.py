@@ -51,7 +51,7 @@ def build_report_source(inp: ReportInputs, folder: str | os.PathLike, figures: b
     ]
     prov = _provenance_section(inp)
     tail = _skipped_section(inp)
-    summary = _summary_section(inp, t1, t2sum, cmp)  # last: collects the notes
+    summary = _summary_section(inp, t1, t2sum)  # last: collects the notes
     name = inp.dataset.root.name
     title = "lidarcal calibration report"
     head = [_template(),

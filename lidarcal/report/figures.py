@@ -87,7 +87,8 @@ def _detail(inp: ReportInputs) -> _Detail:
     camera = res.camera if res is not None else _camera_from_cal(cal, ds)
     try:
         det.board_image = read_image(ds.board_image, camera.image_size)
-        det.boards = res.boards if res is not None else pipeline.find_boards(ds, camera)
+        det.boards = res.boards if res is not None else \
+            pipeline.find_boards(ds, camera, det.board_image)
     except Exception as e:  # noqa: BLE001  (note it in the report, keep going)
         inp.notes.append(f"board detection for the figures failed: {e}")
         return det

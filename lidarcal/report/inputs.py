@@ -3,14 +3,13 @@
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from ..dataset import Dataset, DatasetError, load_dataset
+from ..dataset import Dataset, DatasetError, load_dataset, read_json_object
 
 
 @dataclass
@@ -34,15 +33,10 @@ def _read_json(path: Path, what: str, fmt_prefix: str) -> dict:
     p = Path(path)
     if p.is_dir():
         p = p / what
-    if not p.is_file():
-        raise DatasetError(p, f"missing; give the {what} written by lidarcal")
-    try:
-        data = json.loads(p.read_text(encoding="utf-8-sig"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(p, f"not valid JSON ({e})") from None
-    if not isinstance(data, dict) or not str(data.get("format", "")).startswith(fmt_prefix):
-        raise DatasetError(p, f"is not a {fmt_prefix} file (format "
-                              f"{data.get('format') if isinstance(data, dict) else None!r})")
+    data = read_json_object(p, f"missing; give the {what} written by lidarcal",
+                            f"give the {what} written by lidarcal", f" (a {fmt_prefix} file)")
+    if not str(data.get("format", "")).startswith(fmt_prefix):
+        raise DatasetError(p, f"is not a {fmt_prefix} file (format {data.get('format')!r})")
     return data
 
 

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
+
+from ..dataset import write_atomic
 
 
 def esc(s: object) -> str:
@@ -70,14 +70,5 @@ def compile_typst(source_path: Path, out_pdf: Path, root: Path | None = None) ->
     """Compile a .typ file to ``out_pdf`` atomically (temporary file in the same folder, rename)."""
     import typst
 
-    out_pdf = Path(out_pdf)
-    out_pdf.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_pdf.name}.", suffix=".tmp", dir=out_pdf.parent)
-    os.close(fd)
-    try:
-        typst.compile(str(source_path), output=tmp, root=str(root or source_path.parent))
-        os.replace(tmp, out_pdf)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return out_pdf
+    return write_atomic(out_pdf, lambda tmp: typst.compile(
+        str(source_path), output=str(tmp), root=str(root or source_path.parent)), ".tmp")

@@ -34,7 +34,7 @@ from .tables import (
 )
 
 
-def _summary_section(inp: ReportInputs, t1: pd.DataFrame, t2sum: dict, cmp: dict) -> str:
+def _summary_section(inp: ReportInputs, t1: pd.DataFrame, t2sum: dict) -> str:
     ds, cal = inp.dataset, inp.cal
     cam = cal["camera"]
     K = np.asarray(cam["K"], float)

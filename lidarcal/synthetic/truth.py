@@ -171,6 +171,11 @@ class RigTruth:
         a = self.axis_point
         return Pose(Rk @ self.pose_ref.R, a + Rk @ (self.pose_ref.T - a))
 
+    def pose(self, psi_deg: float) -> Pose:
+        """:meth:`pose_at` as a pose function (:class:`lidarcal.measure.PoseFunction`), the
+        angle taken as the true one: measurements with the true rig."""
+        return self.pose_at(psi_deg)
+
     def poses_at(self, psi_true_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Vectorised :meth:`pose_at`: ``(R (N, 3, 3), T (N, 3))``."""
         th = np.radians(np.asarray(psi_true_deg, dtype=float) - self.psi_ref_deg)
