@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import CALIBRATION_FORMAT, DatasetError, read_json_object
 from .geometry import Pose
+from .io.dataset import CALIBRATION_FORMAT, DatasetError, read_json_object
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .camera import detect_chessboard, project_points, undistort_pixels
-from .dataset import BoardSpec, CameraModel
 from .geometry import MAD_TO_SIGMA, Plane, as_points, nearest_rotation
+from .io.dataset import BoardSpec, CameraModel
 
 
 @dataclass(frozen=True)

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .dataset import BoardSpec, CameraModel, DatasetError, read_image
 from .geometry import MAD_TO_SIGMA, Plane, as_points
+from .io.dataset import BoardSpec, CameraModel, DatasetError, read_image
 
 #: OpenCV model used by :func:`calibrate_intrinsics`: k1, k2, p1, p2 and (with enough views) k3.
 MIN_VIEWS = 3

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .dataset import (
+from .io.dataset import (
     Dataset,
     DatasetError,
     Position,
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     import pandas as pd
     from matplotlib.figure import Figure
 
-    from .dataset import CameraModel
+    from .io.dataset import CameraModel
 
 #: Share of the stripe's core pixels at full scale above which a position is a problem: the
 #: centre of a clipped profile is biased towards the flat top's middle (lower the exposure).

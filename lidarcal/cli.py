@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError
+from .io.dataset import DatasetError
 
 
 def _pattern(text: str) -> tuple[int, int]:
@@ -247,7 +247,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
 def _cmd_intrinsics(a: argparse.Namespace) -> int:
     from .camera import calibrate_intrinsics
-    from .dataset import BoardSpec, write_json_atomic
+    from .io.dataset import BoardSpec, write_json_atomic
 
     if not a.images.is_dir():
         raise DatasetError(a.images, "not a folder of chessboard images")
@@ -273,7 +273,7 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
 
 
 def _cmd_laser_plane(a: argparse.Namespace) -> int:
-    from .dataset import BoardSpec
+    from .io.dataset import BoardSpec
     from .laserplane import laser_plane, read_camera_json, write_laser_plane
 
     res = laser_plane(a.photos, BoardSpec(a.pattern, a.square_mm), read_camera_json(a.camera),
@@ -289,7 +289,7 @@ def _cmd_laser_plane(a: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(a: argparse.Namespace) -> int:
-    from .dataset import ImagePrefetch, load_dataset
+    from .io.dataset import ImagePrefetch, load_dataset
 
     ds = load_dataset(a.dataset)
     skip = set(a.skip)

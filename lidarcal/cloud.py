@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .dataset import DatasetError, LidarSpec, read_sweep
+from .io.dataset import DatasetError, LidarSpec, read_sweep
 from .measure import PoseFunction, sweep_points
 
 FRAMES = ("camera", "home")
@@ -118,8 +118,8 @@ def dataset_clouds(dataset: str | os.PathLike, calibration: str | os.PathLike, n
     ``NAME<fmt>`` each.
     """
     from .api import load_calibration
-    from .dataset import load_dataset
     from .io.clouds import FORMATS
+    from .io.dataset import load_dataset
 
     ds = load_dataset(dataset)
     cal = load_calibration(calibration)

@@ -198,7 +198,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
     import pandas as pd
 
     from .api import load_calibration
-    from .dataset import DatasetError, load_dataset, read_sweep
+    from .io.dataset import DatasetError, load_dataset, read_sweep
     from .measure import measure_disc
 
     ds = load_dataset(dataset)

@@ -154,7 +154,7 @@ def v_fit_crlb(points1: np.ndarray, points2: np.ndarray, normal1: np.ndarray, of
 
 def truth_camera(truth: dict, image_size: tuple[int, int]):
     """The true camera of ``truth.json`` (K, dist padded to OpenCV's five terms)."""
-    from .dataset import CameraModel
+    from .io.dataset import CameraModel
 
     dist = np.asarray(truth["camera"]["dist"], float)
     return CameraModel(np.asarray(truth["camera"]["K"], float), np.r_[dist, np.zeros(5 - len(dist))],

@@ -25,8 +25,8 @@ import numpy as np
 
 from .board import board_view
 from .camera import backproject_to_plane, detect_chessboard
-from .dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
 from .geometry import Plane, fit_plane
+from .io.dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
 from .laser_colour import SATURATED_DN, detect_laser_colour, laser_response
 from .stripe import stripe_centres
 from .stripe_quality import quality_problem

@@ -69,8 +69,8 @@ from scipy import ndimage, sparse
 from scipy.optimize import brentq, least_squares
 from scipy.sparse import csgraph
 
-from .dataset import LidarSpec
 from .geometry import MAD_TO_SIGMA, Plane, Pose, fit_circle_2d, fit_plane, plane_basis
+from .io.dataset import LidarSpec
 from .ranging import ranging_of
 
 #: inlier band of the disc plane, in robust range-noise sigmas
@@ -410,7 +410,7 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
     Parameters
     ----------
     sweep : DataFrame with psi_deg, angle_deg, range_mm (NaN or 0 = no return),
-        as :func:`lidarcal.dataset.read_sweep` returns it.
+        as :func:`lidarcal.io.dataset.read_sweep` returns it.
     model : pose function, ``model.pose(psi_deg) -> Pose`` (eqs. 26-27).
     lidar : the LiDAR's beam angles and range limits (optional; else the
         sweep's distinct angles are the beams).

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from .dataset import CameraModel
+from .io.dataset import CameraModel
 
 
 def project_returns(camera: CameraModel, R: np.ndarray, T: np.ndarray, angle_deg: np.ndarray,
@@ -103,7 +103,7 @@ def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLi
     must coincide when the calibration is right.
     """
     from .api import load_calibration
-    from .dataset import DatasetError, load_dataset, read_image, read_scan
+    from .io.dataset import DatasetError, load_dataset, read_image, read_scan
 
     ds = load_dataset(dataset)
     pos = [p for p in ds.positions if p.index == index]
@@ -122,7 +122,7 @@ def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLi
         img = np.stack([board, board, np.maximum(board, stripe)], axis=2)
     camera = ds.camera
     if isinstance(cal.data.get("camera"), dict) and "K" in cal.data["camera"]:
-        from .dataset import parse_camera
+        from .io.dataset import parse_camera
 
         camera = parse_camera(cal.data["camera"], cal.path)
     if camera is None:

@@ -29,7 +29,8 @@ import numpy as np
 from . import __version__
 from .board import BoardView, find_v_boards
 from .camera import IntrinsicsResult, calibrate_intrinsics
-from .dataset import (
+from .geometry import Pose
+from .io.dataset import (
     CALIBRATION_FORMAT,
     MEASUREMENTS_FORMAT,
     CameraModel,
@@ -44,7 +45,6 @@ from .dataset import (
     read_stripe_image,
     write_json_atomic,
 )
-from .geometry import Pose
 from .pose import single_shot_pose
 from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
 from .stripe import (
@@ -234,7 +234,7 @@ def _rho_picks(positions: list[Position], n_images: int = 5) -> list[int]:
 def find_boards(ds: Dataset, camera: CameraModel, image: np.ndarray | None = None
                 ) -> tuple[BoardView, BoardView]:
     """Both chessboards of the V in ``board.png`` (section 1.2); ``image``: that file
-    already decoded (:func:`lidarcal.dataset.read_image`), else it is read here."""
+    already decoded (:func:`lidarcal.io.dataset.read_image`), else it is read here."""
     img = read_image(ds.board_image, camera.image_size) if image is None else image
     try:
         return find_v_boards(img, ds.v_board, camera)
@@ -259,7 +259,7 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     naming its file) instead of being skipped with a warning (the default, while at
     least ``MIN_POSITIONS`` remain). ``skip_failed`` is accepted for old callers and
     ignored (skipping is the default now).
-    ``images``: stripe images already being decoded (:class:`lidarcal.dataset.ImagePrefetch`,
+    ``images``: stripe images already being decoded (:class:`lidarcal.io.dataset.ImagePrefetch`,
     closed by its owner); by default they are decoded in a background thread while the
     boards are found, and that thread is stopped before returning or raising.
     """

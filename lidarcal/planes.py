@@ -45,7 +45,6 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from .dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
 from .degeneracy import (
     MIN_VIEWS,
     PARALLEL_LIMIT,
@@ -57,6 +56,7 @@ from .degeneracy import (
     view_level_chi2,
 )
 from .geometry import Plane, nearest_rotation, plane_basis
+from .io.dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
 from .scan import scan_points
 from .scan_segments import MIN_POINTS, LineSegment, line_segments, local_line_noise
 
@@ -564,7 +564,7 @@ def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarr
 def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int = MIN_POINTS
                   ) -> list[ViewData]:
     """Board plane (with covariance) and candidate scan segments of every view pair."""
-    from .dataset import read_image
+    from .io.dataset import read_image
 
     views = []
     for pr in pairs:
@@ -712,7 +712,7 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
 def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
                seed: int = 0, limit_mm: float = UNDETERMINED_MM) -> PlanesResult:
     """``lidarcal planes``: read the view pairs and the camera, calibrate."""
-    from .dataset import parse_camera, read_json_object
+    from .io.dataset import parse_camera, read_json_object
     from .io.pairs import read_view_pairs
 
     cpath = Path(camera_json)

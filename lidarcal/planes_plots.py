@@ -17,7 +17,7 @@ def projection_figure(res: PlanesResult, k: int, image: np.ndarray | None = None
     """View ``k``'s scan drawn on its photo with the calibration (board returns ringed, the
     pattern's outline one square beyond the outer corners in yellow)."""
     from .board import board_outline_px
-    from .dataset import read_image
+    from .io.dataset import read_image
     from .overlay import lidar_on_image
 
     v = res.views[k]

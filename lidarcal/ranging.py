@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dataset import BoardSpec, DatasetError
+from .io.dataset import BoardSpec, DatasetError
 
 DEFAULT_PRIOR_SIGMA_MM = 100.0  # wide: larger than any datasheet's systematic error
 #: a term is "determined by the data" when its posterior sigma is below this share of its prior's

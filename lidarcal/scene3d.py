@@ -218,7 +218,7 @@ def screenshot(p: pv.Plotter, path: str | os.PathLike | None = None) -> np.ndarr
     if path is not None:
         import matplotlib.image as mpimg
 
-        from .dataset import write_atomic
+        from .io.dataset import write_atomic
 
         write_atomic(path, lambda t: mpimg.imsave(t, img))
     p.close()

@@ -19,8 +19,8 @@ import numpy as np
 
 from .board import BoardView
 from .camera import backproject_to_plane
-from .dataset import CameraModel
 from .geometry import Plane, fit_plane, fit_plane_algebraic, intersect_planes, unit
+from .io.dataset import CameraModel
 from .laser_colour import (  # noqa: F401  (re-exported: the stripe's public API)
     LASER_COLOURS,
     SATURATED_DN,

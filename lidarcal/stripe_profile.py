@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 
 from .camera import undistort_pixels
-from .dataset import CameraModel
 from .geometry import MAD_TO_SIGMA
+from .io.dataset import CameraModel
 from .laser_colour import SATURATED_DN
 from .stripe_quality import quality_problem, stripe_quality
 

@@ -83,9 +83,9 @@ from scipy.spatial.transform import Rotation
 
 from .board import board_view
 from .camera import project_points
-from .dataset import BoardSpec, CameraModel
 from .evaluate import axis_direction_error_deg, pose_error
 from .geometry import Plane, unit
+from .io.dataset import BoardSpec, CameraModel
 from .joint import JointModel, fit_joint
 from .pipeline import CalibrationResult, PositionResult
 from .pose import single_shot_pose

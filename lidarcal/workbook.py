@@ -35,7 +35,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .dataset import Dataset, DatasetError, load_dataset
+from .io.dataset import Dataset, DatasetError, load_dataset
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -117,7 +117,7 @@ def shown_position(ds: Dataset, camera, boards, rho: float | None = None):
     position and one line per position passed over."""
     import numpy as np
 
-    from .dataset import read_scan, read_stripe_image
+    from .io.dataset import read_scan, read_stripe_image
     from .scan import split_v
     from .stripe import camera_lines
 

@@ -6,8 +6,8 @@ seconds per stage, so the remaining gap to the read-only floor can be attributed
 
   imports      ``import lidarcal.pipeline, lidarcal.joint`` (a fresh process, best of 3),
                next to ``import cv2, numpy, pandas`` (the floor's own imports)
-  decode       every stripe image (:func:`lidarcal.dataset.read_stripe_image`)
-  scans        every scan (:func:`lidarcal.dataset.read_scan`)
+  decode       every stripe image (:func:`lidarcal.io.dataset.read_stripe_image`)
+  scans        every scan (:func:`lidarcal.io.dataset.read_scan`)
   boards       both chessboards of the V in board.png (section 1.2)
   rho          the dataset's stripe reflectance ratio (5 images)
   positions    section 1 at every position (stripe, scan lines, pose), per position too
@@ -60,7 +60,7 @@ def main() -> None:
     t_imp = _import_seconds("import lidarcal.pipeline, lidarcal.joint")
 
     from lidarcal import pipeline as P
-    from lidarcal.dataset import load_dataset, read_scan, read_stripe_image
+    from lidarcal.io.dataset import load_dataset, read_scan, read_stripe_image
     from lidarcal.joint import fit_joint
     from lidarcal.turntable import fit_paper, fit_rigid
 

@@ -15,8 +15,8 @@ import argparse
 import numpy as np
 import pandas as pd
 
-from lidarcal.dataset import LidarSpec
 from lidarcal.disc import EdgeModel, beam_spacing_mm, fit_edge_model, mixed_share, random_sigma_mm
+from lidarcal.io.dataset import LidarSpec
 from lidarcal.measure import measure_disc
 from lidarcal.synthetic.config import get_rig
 from lidarcal.synthetic.lidar import beam_angles_deg, simulate_scans

@@ -41,7 +41,6 @@ def with_true_camera(path: Path, tmp: Path) -> Path:
 
 
 def step_table(res, truth: dict, scans: dict) -> pd.DataFrame:
-    from lidarcal.dataset import read_scan
     from lidarcal.evaluate import (
         angle_between_deg,
         match_planes,
@@ -53,6 +52,7 @@ def step_table(res, truth: dict, scans: dict) -> pd.DataFrame:
         truth_poses,
         v_fit_crlb,
     )
+    from lidarcal.io.dataset import read_scan
     from lidarcal.scan import scan_points
 
     tp, TB = truth_poses(truth), truth_board_planes(truth)
@@ -85,7 +85,6 @@ def step_table(res, truth: dict, scans: dict) -> pd.DataFrame:
 
 def oracle_table(res, truth: dict, scans: dict) -> pd.DataFrame:
     """Rigid pose function refitted with truth swapped in on the camera side."""
-    from lidarcal.dataset import read_scan
     from lidarcal.evaluate import (
         match_planes,
         pose_error,
@@ -94,6 +93,7 @@ def oracle_table(res, truth: dict, scans: dict) -> pd.DataFrame:
         truth_poses,
     )
     from lidarcal.geometry import intersect_planes, unit
+    from lidarcal.io.dataset import read_scan
     from lidarcal.pose import single_shot_pose
     from lidarcal.scan import fit_v_lines, scan_points
     from lidarcal.turntable import fit_paper, fit_rigid
@@ -131,7 +131,6 @@ def main() -> None:
     ap.add_argument("dataset", type=Path)
     ap.add_argument("--true-camera", action="store_true")
     args = ap.parse_args()
-    from lidarcal.dataset import load_dataset
     from lidarcal.evaluate import (
         match_planes,
         plane_error,
@@ -139,6 +138,7 @@ def main() -> None:
         truth_board_planes,
         truth_poses,
     )
+    from lidarcal.io.dataset import load_dataset
     from lidarcal.pipeline import calibrate
 
     pd.set_option("display.width", 200)

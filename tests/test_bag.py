@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.dataset import DatasetError, load_dataset, read_scan, read_sweep
 from lidarcal.io.bag import import_bag
+from lidarcal.io.dataset import DatasetError, load_dataset, read_scan, read_sweep
 from lidarcal.synthetic import get_rig, simulate
 from lidarcal.synthetic.bag import write_bag
 

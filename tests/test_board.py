@@ -16,8 +16,8 @@ from lidarcal.board import (
     pose_pnp,
 )
 from lidarcal.camera import pixel_rays, project_points
-from lidarcal.dataset import BoardSpec, CameraModel
 from lidarcal.geometry import angle_between_deg
+from lidarcal.io.dataset import BoardSpec, CameraModel
 
 CAM = CameraModel(np.array([[1400.0, 0, 505.0], [0, 1402.0, 396.0], [0, 0, 1]]),
                   np.array([-0.12, 0.15, 0.0005, -0.0003, 0.0]), (1000, 800))

@@ -19,8 +19,8 @@ from lidarcal.camera import (
     project_points,
     undistort_pixels,
 )
-from lidarcal.dataset import BoardSpec, CameraModel, DatasetError
 from lidarcal.geometry import Plane
+from lidarcal.io.dataset import BoardSpec, CameraModel, DatasetError
 
 PAPER_CAM = CameraModel(np.array([[2757.4, 0, 831.6], [0, 2758.6, 638.9], [0, 0, 1.0]]),
                         np.array([-0.076, 0.371, 0, 0, 0]), (1624, 1234))
@@ -189,7 +189,7 @@ BUNDLED = Path(__file__).resolve().parents[1] / "data" / "paper_rig"
 
 def test_simulated_views_recover_truth() -> None:
     """The bundled paper-rig views: fx, fy to 0.05 %, principal point to 2 px, vs truth.json."""
-    from lidarcal.dataset import load_dataset
+    from lidarcal.io.dataset import load_dataset
     if not (BUNDLED / "truth.json").is_file() or not (BUNDLED / "intrinsics").is_dir():
         pytest.skip("bundled dataset data/paper_rig not present")
     ds = load_dataset(BUNDLED)

@@ -271,7 +271,7 @@ def test_failed_position_in_worker_processes(tmp_path, capsys):
 def test_dataset_error_survives_pickling():
     import pickle
 
-    from lidarcal.dataset import DatasetError
+    from lidarcal.io.dataset import DatasetError
 
     e = pickle.loads(pickle.dumps(DatasetError("a/b.png", "cannot be decoded")))
     assert isinstance(e, DatasetError) and e.path == "a/b.png" and str(e) == "a/b.png: cannot be decoded"

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from lidarcal.api import load_calibration
-from lidarcal.dataset import CALIBRATION_FORMAT, DatasetError, load_dataset, read_sweep
 from lidarcal.io.clouds import read_cloud, read_pcd, write_cloud
+from lidarcal.io.dataset import CALIBRATION_FORMAT, DatasetError, load_dataset, read_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM = ROOT / "data" / "paper_rig"

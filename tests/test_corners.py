@@ -19,7 +19,7 @@ from lidarcal.camera import (
     local_square_px,
     view_reprojection_sq,
 )
-from lidarcal.dataset import BoardSpec, CameraModel
+from lidarcal.io.dataset import BoardSpec, CameraModel
 
 REPO = Path(__file__).resolve().parents[1]
 TAPAS = REPO / "data" / "real_tapas"
@@ -185,7 +185,7 @@ def test_tapas_board_reprojection() -> None:
     pose each (PnP) to a median 0.35 px (0.24-1.41 px per view; 1.35 px median with a window
     of a quarter square and no outlier check, where the rings dragged corners)."""
     from lidarcal.board import board_view
-    from lidarcal.dataset import parse_camera
+    from lidarcal.io.dataset import parse_camera
 
     cam = parse_camera(json.loads((TAPAS / "camera.json").read_text()), TAPAS / "camera.json")
     rms = []

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.dataset import (
+from lidarcal.io.dataset import (
     DatasetError,
     load_dataset,
     read_image,

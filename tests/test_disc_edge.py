@@ -16,8 +16,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lidarcal.dataset import DatasetError, LidarSpec
 from lidarcal.disc import EdgeModel, beam_spacing_mm, fit_edge_model, mixed_share
+from lidarcal.io.dataset import DatasetError, LidarSpec
 from lidarcal.measure import measure_disc
 from lidarcal.synthetic.config import get_rig
 from lidarcal.synthetic.lidar import beam_angles_deg, simulate_scans

@@ -146,7 +146,7 @@ def test_readme_command_block(tmp_path):
 
 
 def _check_simulate(argv, p, cwd, out, truth):
-    from lidarcal.dataset import load_dataset
+    from lidarcal.io.dataset import load_dataset
 
     ds = load_dataset(argv[1])
     assert len(ds.positions) == 6 and ds.camera is not None

@@ -78,7 +78,7 @@ def test_wide_rig_samples_sit_at_the_bound(tmp_path):
     centre errors are the scan's noise floor: their mean square over the bound's is a
     chi-square-like ratio near 1 (0.1 %..99.9 % of chi2_8 / 8: 0.19..3.3; the camera side adds
     a little)."""
-    from lidarcal.dataset import load_dataset, read_scan
+    from lidarcal.io.dataset import load_dataset, read_scan
     from lidarcal.pipeline import calibrate
     from lidarcal.scan import scan_points
     from lidarcal.synthetic import simulate

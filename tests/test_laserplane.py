@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.dataset import BoardSpec, DatasetError
 from lidarcal.geometry import Plane
+from lidarcal.io.dataset import BoardSpec, DatasetError
 from lidarcal.laserplane import (
     PhotoResult,
     fit_laser_plane,

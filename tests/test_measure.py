@@ -19,8 +19,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lidarcal.dataset import LidarSpec
 from lidarcal.geometry import Pose, angle_between_deg, rotation_about_axis, unit
+from lidarcal.io.dataset import LidarSpec
 from lidarcal.measure import Footprint, measure_disc, sweep_grid, sweep_points
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -358,7 +358,7 @@ class AxisModel:
 @pytest.mark.skipif(not (SIM / "measure").is_dir() or not (SIM / "truth.json").is_file(),
                     reason="simulated dataset data/paper_rig not generated (make data)")
 def test_simulator_sweeps_with_true_poses():
-    from lidarcal.dataset import load_dataset, read_sweep
+    from lidarcal.io.dataset import load_dataset, read_sweep
 
     ds = load_dataset(SIM)
     truth = json.loads((SIM / "truth.json").read_text())

@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lidarcal.board import board_outline_px
-from lidarcal.dataset import BoardSpec, DatasetError
+from lidarcal.io.dataset import BoardSpec, DatasetError
 from lidarcal.io.pairs import board_spec, read_scan_any, read_view_pairs
 from lidarcal.overlay import lidar_on_image, project_returns
 from lidarcal.planes import calibrate_planes, leave_one_out, run_planes

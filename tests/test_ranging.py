@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from ranging_data import dark_hits
 
-from lidarcal.dataset import DatasetError, load_dataset, read_scan
 from lidarcal.evaluate import pose_error
+from lidarcal.io.dataset import DatasetError, load_dataset, read_scan
 from lidarcal.joint import fit_joint_data, joint_data
 from lidarcal.ranging import (
     RangingModel,

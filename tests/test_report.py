@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidarcal.dataset import BoardSpec, CameraModel, Dataset, LidarSpec, Position
 from lidarcal.geometry import unit
+from lidarcal.io.dataset import BoardSpec, CameraModel, Dataset, LidarSpec, Position
 from lidarcal.report import (
     DECIMALS,
     PAPER_TABLE1,

@@ -388,8 +388,8 @@ PAPER_RIG = Path(__file__).resolve().parents[1] / "data" / "paper_rig"
 
 @pytest.mark.skipif(not (PAPER_RIG / "truth.json").is_file(), reason="no simulated data/paper_rig")
 def test_split_and_fit_on_simulated_paper_rig_dataset():
-    from lidarcal.dataset import load_dataset, read_scan
     from lidarcal.geometry import Plane, Pose
+    from lidarcal.io.dataset import load_dataset, read_scan
 
     ds = load_dataset(PAPER_RIG)
     truth = json.loads((PAPER_RIG / "truth.json").read_text())

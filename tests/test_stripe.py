@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.dataset import CameraModel
 from lidarcal.geometry import Plane, angle_between_deg, intersect_planes, unit
+from lidarcal.io.dataset import CameraModel
 from lidarcal.stripe import reflectance_ratio, stripe_centres
 
 H, W = 240, 420
@@ -205,7 +205,7 @@ def paper_dataset(tmp_path_factory) -> tuple[Path, list[int]]:
 def test_camera_lines_on_simulated_rig(paper_dataset) -> None:
     """Paper rig, truth camera: board planes < 0.02 deg, laser plane < 0.01 deg, E < 0.05 mm."""
     from lidarcal.board import find_v_boards
-    from lidarcal.dataset import load_dataset, read_image
+    from lidarcal.io.dataset import load_dataset, read_image
     from lidarcal.stripe import camera_lines, estimate_reflectance_ratio
     root, use = paper_dataset
     ds = load_dataset(root)
@@ -241,7 +241,7 @@ def test_camera_lines_on_simulated_rig(paper_dataset) -> None:
 def test_colour_laser_keeps_its_signal(tmp_path, channel) -> None:
     """A red (or green) laser in a BGR stripe image: read by its brightest channel, the
     stripe keeps its full peak (luminance would keep 30 % / 59 %) and its centres stay exact."""
-    from lidarcal.dataset import read_stripe_image
+    from lidarcal.io.dataset import read_stripe_image
 
     f = line(118.37, 0.17)
     gray = render_stripe(f, seed=4)

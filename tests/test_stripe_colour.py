@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.dataset import DatasetError, load_dataset, read_stripe_image
+from lidarcal.io.dataset import DatasetError, load_dataset, read_stripe_image
 from lidarcal.stripe import detect_laser_colour, laser_response, stripe_centres
 
 H, W = 300, 480

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.dataset import load_dataset, read_image, read_scan, read_sweep
 from lidarcal.geometry import Pose, rotation_about_axis
+from lidarcal.io.dataset import load_dataset, read_image, read_scan, read_sweep
 from lidarcal.synthetic import RIGS, make_truth, project_points, simulate, simulate_scans
 from lidarcal.synthetic.scene import InfinitePlane, Rect
 

@@ -14,7 +14,7 @@ import nbformat
 import numpy as np
 import pytest
 
-from lidarcal.dataset import DatasetError, load_dataset
+from lidarcal.io.dataset import DatasetError, load_dataset
 from lidarcal.workbook import (
     PARAMETER,
     check_parameters_cell,
@@ -182,7 +182,7 @@ def test_the_shown_position_passes_over_a_broken_first_one(dataset_copy):
     import cv2
 
     from lidarcal.board import find_v_boards
-    from lidarcal.dataset import read_image
+    from lidarcal.io.dataset import read_image
     from lidarcal.pipeline import camera_for
     from lidarcal.workbook import shown_position
 

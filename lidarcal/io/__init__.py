@@ -1,6 +1,8 @@
 """File formats read and written by lidarcal (kept light: importing this package imports
 nothing heavy; import the submodule you need).
 
+- :mod:`lidarcal.io.dataset`: the dataset contract (docs/dataset-format.md): read, validate,
+  write.
 - :mod:`lidarcal.io.bag`: ROS 1 / ROS 2 bags (through rosbags) into a dataset folder.
 - :mod:`lidarcal.io.rig`: RIG.json, what a bag cannot hold.
 - :mod:`lidarcal.io.clouds`: point clouds out (PLY, PCD, VTP, CSV) and back in.

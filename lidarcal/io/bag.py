@@ -40,17 +40,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..dataset import (
-    DATASET_FORMAT,
-    DatasetError,
-    write_json_atomic,
-)
 from ..stationary import (
     default_min_duration_s,
     default_tolerance_deg,
     encoder_resolution_deg,
     find_stationary,
     median_period_s,
+)
+from .dataset import (
+    DATASET_FORMAT,
+    DatasetError,
+    write_json_atomic,
 )
 from .rig import RigFile, read_rig
 

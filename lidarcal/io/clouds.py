@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import write_atomic
+from .dataset import write_atomic
 
 FORMATS = (".ply", ".pcd", ".vtp", ".csv")
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import DatasetError, read_csv_columns, read_scan
+from .dataset import DatasetError, read_csv_columns, read_scan
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -121,7 +121,7 @@ def board_spec(folder: str | Path, pattern: tuple[int, int] | None = None,
     """The chessboard of a view-pairs folder: ``pattern`` and ``square_mm`` when both are given,
     else the folder's ``board.json`` ``{"inner_corners": [8, 5], "square_mm": 100}`` (the keys
     of dataset.json's boards); one of them given alone overrides that key of the file."""
-    from ..dataset import BoardSpec, _board, read_json_object
+    from .dataset import BoardSpec, _board, read_json_object
 
     if pattern is not None and square_mm is not None:
         if square_mm <= 0:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import DEFAULT_Z_AXIS_HINT, DatasetError, parse_camera, read_json_object
+from .dataset import DEFAULT_Z_AXIS_HINT, DatasetError, parse_camera, read_json_object
 
 
 @dataclass(frozen=True)

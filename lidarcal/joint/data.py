@@ -6,8 +6,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..dataset import BoardSpec, CameraModel
 from ..geometry import Pose
+from ..io.dataset import BoardSpec, CameraModel
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,7 +8,7 @@ import tempfile
 from pathlib import Path
 
 from .. import __version__
-from ..dataset import Dataset
+from ..io.dataset import Dataset
 from .figures import _Detail, _detail, _Figures
 from .inputs import ReportInputs, gather_inputs
 from .markup import _template, compile_typst, esc

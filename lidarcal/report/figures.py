@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import CameraModel, Dataset
 from ..geometry import Pose
+from ..io.dataset import CameraModel, Dataset
 from .inputs import ReportInputs
 from .markup import esc
 from .tables import _poses
@@ -80,7 +80,7 @@ class _Detail:
 
 def _detail(inp: ReportInputs) -> _Detail:
     from .. import pipeline
-    from ..dataset import read_image, read_scan, read_stripe_image
+    from ..io.dataset import read_image, read_scan, read_stripe_image
 
     ds, cal, res = inp.dataset, inp.cal, inp.result
     det = _Detail()
@@ -279,7 +279,7 @@ def _disc_trial(inp: ReportInputs) -> _DiscTrial:
     from dataclasses import replace
 
     from ..api import load_calibration
-    from ..dataset import read_sweep
+    from ..io.dataset import read_sweep
     from ..measure import measure_disc
 
     ds = inp.dataset

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from ..dataset import Dataset, DatasetError, load_dataset, read_json_object
+from ..io.dataset import Dataset, DatasetError, load_dataset, read_json_object
 
 
 @dataclass

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import write_atomic
+from ..io.dataset import write_atomic
 
 
 def esc(s: object) -> str:

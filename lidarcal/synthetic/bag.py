@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..dataset import load_dataset, read_scan, read_sweep
+from ..io.dataset import load_dataset, read_scan, read_sweep
 
 T0_NS = 1_700_000_000 * 1_000_000_000  # the recording's wall-clock start
 

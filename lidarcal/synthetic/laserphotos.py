@@ -23,8 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..dataset import write_json_atomic
 from ..geometry import Plane, Pose, rotation_about_axis, unit
+from ..io.dataset import write_json_atomic
 from .config import PAPER
 from .render import RayMap, albedo_table, render_view, stripe_signal
 from .scene import InfinitePlane, Rect

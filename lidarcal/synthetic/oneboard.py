@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import BoardSpec, CameraModel, write_json_atomic
+from ..io.dataset import BoardSpec, CameraModel, write_json_atomic
 from .scene import Cylinder, InfinitePlane, Rect, trace
 
 

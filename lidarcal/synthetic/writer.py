@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..dataset import DATASET_FORMAT, write_json_atomic
+from ..io.dataset import DATASET_FORMAT, write_json_atomic
 from .config import RigConfig, get_rig
 from .lidar import beam_angles_deg, simulate_scans
 from .render import (

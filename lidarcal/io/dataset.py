@@ -22,7 +22,7 @@ from typing import Any, Self
 import cv2
 import numpy as np
 
-from .laser_colour import LASER_COLOURS, laser_response
+from ..laser_colour import LASER_COLOURS, laser_response
 
 DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
