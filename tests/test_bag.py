@@ -47,6 +47,9 @@ def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
                         "scan_clock_offset_s": -3600.0},
         "deg_angle": {"storage": "mcap", "images": "png", "sweeps": False,
                       "angle_msg": "float64_deg"},
+        "one_camera": {"storage": "sqlite3", "images": "png", "single_camera_topic": True},
+        "two_steppers": {"storage": "sqlite3", "images": "png", "sweeps": False,
+                         "extra_joint": True, "stepping_joint": True},
     }.items():
         bag = root / (f"{name}.bag" if kw["storage"] == "rosbag1" else name)
         write_bag(rig_folder, bag, rig_json=root / f"{name}.json", seed=1, **kw)
@@ -84,12 +87,14 @@ def assert_same_dataset(a: Path, b: Path, exact_images: bool = True) -> None:
 def test_ros1_raw_images_cli(bags, rig_folder, tmp_path):
     bag, rig = bags["ros1_raw"]
     out = tmp_path / "ds"
-    r = lidarcal("import", bag, "--rig", rig, "--out", out)  # two joints: --joint is needed
-    assert r.returncode == 2 and r.stderr.count("\n") == 1
-    assert "has 2 joints (pan_dummy, turntable); name the turntable with --joint" in r.stderr
-    assert not out.exists()
-    r = lidarcal("import", bag, "--rig", rig, "--out", out, "--joint", "turntable")
+    # two joints, one holding still (pan_dummy), one stepping: the stepping one is the turntable
+    r = lidarcal("import", bag, "--rig", rig, "--out", out)
     assert r.returncode == 0, r.stderr
+    assert "joint 'turntable' is the turntable (the only joint of pan_dummy, turntable" in r.stderr
+    assert_same_dataset(rig_folder, out)
+    r = lidarcal("import", bag, "--rig", rig, "--out", out, "--joint", "turntable", "--overwrite")
+    assert r.returncode == 0, r.stderr
+    assert "is the turntable" not in r.stderr
     assert "6 positions" in r.stdout and "2 sweep(s)" in r.stdout
     assert_same_dataset(rig_folder, out)
     meta = json.loads((out / "dataset.json").read_text())
@@ -321,3 +326,117 @@ def test_combine_frames_is_the_per_pixel_median(k):
     want = np.floor(np.median(np.stack(frames).astype(float), axis=0) + 0.5)
     got = combine_frames(frames)
     assert got.dtype == np.uint8 and np.array_equal(got, want)
+
+
+def test_one_camera_topic_lit_board_then_dark_stripes(bags, rig_folder, tmp_path):
+    """One /camera/image_raw/compressed: lit frames at the first stop, then dark ones."""
+    bag, rig = bags["one_camera"]
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "ds", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "6 positions" in r.stdout and "2 sweep(s)" in r.stdout
+    assert_same_dataset(rig_folder, tmp_path / "ds")
+    # the board is the median of the lit frames: the folder's board image, pixel for pixel
+    assert np.array_equal(cv2.imread(str(tmp_path / "ds" / "board.png"), cv2.IMREAD_UNCHANGED),
+                          cv2.imread(str(rig_folder / "board.png"), cv2.IMREAD_UNCHANGED))
+    meta = json.loads((tmp_path / "ds" / "dataset.json").read_text())["import"]
+    assert meta["topics"]["stripe"] == meta["topics"]["board"] == "/camera/image_raw/compressed"
+    cam = meta["camera"]
+    assert cam["single_camera_topic"] and cam["board_period"]["lit_frames"] == 2
+    assert cam["board_period"]["psi_deg"] == pytest.approx(load_dataset(rig_folder).positions[0].psi_deg)
+    # the first stop: two lit frames (the board) and two dark ones (its stripes)
+    assert meta["positions"][0]["stripe_frames"] == 2
+    # both topics named the same is the same one-camera import
+    res = import_bag(bag, rig, tmp_path / "ds2", stripe_topic="/camera/image_raw",
+                     board_topic="/camera/image_raw")
+    assert len(res.positions) == 6
+    assert_same_dataset(tmp_path / "ds", tmp_path / "ds2")
+    shutil.copy(rig_folder / "truth.json", tmp_path / "ds" / "truth.json")
+    cals = {}
+    for name, ds in (("bag", tmp_path / "ds"), ("folder", rig_folder)):
+        r = lidarcal("calibrate", ds, "--out", tmp_path / f"cal_{name}", "--method", "rigid",
+                     "--no-progress")
+        assert r.returncode == 0, r.stderr
+        cals[name] = json.loads((tmp_path / f"cal_{name}" / "calibration.json").read_text())
+    from lidarcal.evaluate import pose_errors
+    from lidarcal.geometry import Pose
+
+    truth = json.loads((rig_folder / "truth.json").read_text())
+    errs = {k: pose_errors({p["index"]: Pose.from_dict(p) for p in c["poses"]}, truth)
+            for k, c in cals.items()}
+    for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):  # as in the two-topic test above
+        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-4)
+
+
+def test_one_camera_topic_without_lit_frames_is_one_line(bags, tmp_path):
+    bag, rig = bags["ros2_png"]  # its stripe topic has dark frames only
+    topic = "/camera/stripes/image_raw"
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "x", "--stripe-topic", topic,
+                 "--board-topic", topic)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "no lit frame was found among its" in r.stderr and "--board-image" in r.stderr
+    assert "(frame medians 2..2 of 255, one cluster)" in r.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_several_stepping_joints_is_one_line(bags, tmp_path):
+    bag, rig = bags["two_steppers"]
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "x")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert ("/turntable/joint_states has 2 joints (pan_dummy (6 still angles), turntable "
+            "(6 still angles)) and 2 of them steps like a turntable; name the turntable with "
+            "--joint") in r.stderr
+    res = import_bag(bag, rig, tmp_path / "ds", joint="turntable")
+    assert len(res.positions) == 6
+
+
+class _Topic:
+    def __init__(self, msgtype: str):
+        self.msgtype = msgtype
+
+
+class _Reader:
+    """What pick_topic reads of a bag: its topics and their types."""
+
+    def __init__(self, **topics: str):
+        self.topics = {t.replace("__", "/").replace("_C", "/compressed"): _Topic(m)
+                       for t, m in topics.items()}
+
+
+def test_topic_auto_detection():
+    from lidarcal.io.bag import COMPRESSED, IMAGE, IMAGE_TYPES, LASERSCAN, pick_topic
+
+    # the same stream raw and compressed: the raw one, counted once
+    rd = _Reader(__camera__image_raw=IMAGE, __camera__image_raw_C=COMPRESSED, __scan=LASERSCAN)
+    for prefer in ("stripe", "board"):
+        assert pick_topic(rd, None, IMAGE_TYPES, "image", "--stripe-topic", Path("b"),
+                          prefer=prefer) == "/camera/image_raw"
+    # only the compressed copy: that one
+    rd = _Reader(__camera__image_raw_C=COMPRESSED)
+    assert pick_topic(rd, None, IMAGE_TYPES, "image", "--x", Path("b"),
+                      prefer="stripe") == "/camera/image_raw/compressed"
+    # two cameras without 'stripe'/'board' in their names: ask
+    rd = _Reader(__left__image_raw=IMAGE, __right__image_raw=IMAGE)
+    with pytest.raises(DatasetError, match=r"2 stripe image topics .* name it with --stripe-topic; "
+                                           r"the bag has: /left/image_raw \(sensor_msgs/Image\)"):
+        pick_topic(rd, None, IMAGE_TYPES, "stripe image", "--stripe-topic", Path("b"),
+                   prefer="stripe")
+    # two LaserScan topics (/scan, /scan_filtered): ask for --scan-topic, listing both
+    rd = _Reader(__scan=LASERSCAN, __scan_filtered=LASERSCAN)
+    with pytest.raises(DatasetError, match=r"2 LaserScan topics \(sensor_msgs/msg/LaserScan\); "
+                                           r"name it with --scan-topic; the bag has: /scan "
+                                           r"\(sensor_msgs/LaserScan\), /scan_filtered"):
+        pick_topic(rd, None, (LASERSCAN,), "LaserScan", "--scan-topic", Path("b"))
+    assert pick_topic(rd, "/scan_filtered", (LASERSCAN,), "LaserScan", "--scan-topic",
+                      Path("b")) == "/scan_filtered"
+
+
+@pytest.mark.parametrize("dark,lit", [([2, 2, 3, 2, 2, 2], [61, 60]), ([10, 14, 12, 11], [90]),
+                                      ([0, 1, 0, 0, 2], [40, 120, 41])])
+def test_lit_dark_split_from_the_frame_medians(dark, lit):
+    from lidarcal.io.bag_frames import split_lit_dark
+
+    s = split_lit_dark(np.array(dark + lit, dtype=float))
+    assert s.has_lit and max(dark) <= s.threshold < min(lit) and s.separability > 0.5
+    # dark only (the dark level flickering by a few gray levels, or spread): no lit frame
+    for one_cluster in (dark, [30, 31, 29, 30], [5], list(range(5, 41)), [2, 2, 2]):
+        assert not split_lit_dark(np.array(one_cluster, dtype=float)).has_lit
