@@ -48,6 +48,8 @@ def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
         "deg_angle": {"storage": "mcap", "images": "png", "sweeps": False,
                       "angle_msg": "float64_deg"},
         "one_camera": {"storage": "sqlite3", "images": "png", "single_camera_topic": True},
+        "lit_first_stop": {"storage": "mcap", "images": "raw", "sweeps": False,
+                           "single_camera_topic": True, "lit_s": 2.0},
         "two_steppers": {"storage": "sqlite3", "images": "png", "sweeps": False,
                          "extra_joint": True, "stepping_joint": True},
     }.items():
@@ -365,6 +367,23 @@ def test_one_camera_topic_lit_board_then_dark_stripes(bags, rig_folder, tmp_path
             for k, c in cals.items()}
     for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):  # as in the two-topic test above
         assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-4)
+
+
+def test_a_stop_with_lit_frames_only_is_the_board_not_a_position(bags, rig_folder, tmp_path):
+    bag, rig = bags["lit_first_stop"]  # /camera/image_raw, lights on for the whole first stop
+    res = import_bag(bag, rig, tmp_path / "ds")
+    first = load_dataset(rig_folder).positions[0].psi_deg
+    assert len(res.positions) == 5 and all(abs(p.psi_deg - first) > 0.1 for p in res.positions)
+    msg = [w for w in res.warnings if "lit frames only" in w]
+    assert len(msg) == 1 and msg[0].startswith("/camera/image_raw: the still period at -0.00..2.0")
+    assert f"(psi {first:.4f} deg) has lit frames only (the board): not a stripe position" in msg[0]
+    assert np.array_equal(cv2.imread(str(tmp_path / "ds" / "board.png"), cv2.IMREAD_UNCHANGED),
+                          cv2.imread(str(rig_folder / "board.png"), cv2.IMREAD_UNCHANGED))
+    got, orig = load_dataset(tmp_path / "ds"), load_dataset(rig_folder)
+    for pa, pb in zip(orig.positions[1:], got.positions):  # the other stops: as in the folder
+        assert pb.psi_deg == pytest.approx(pa.psi_deg, abs=1e-9)
+        assert np.array_equal(cv2.imread(str(pa.stripe_image), cv2.IMREAD_UNCHANGED),
+                              cv2.imread(str(pb.stripe_image), cv2.IMREAD_UNCHANGED))
 
 
 def test_one_camera_topic_without_lit_frames_is_one_line(bags, tmp_path):

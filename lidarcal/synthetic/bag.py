@@ -119,7 +119,8 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
               angle_msg: str = "joint", extra_joint: bool = False,
               encoder_step_deg: float | None = None, hold_band_deg: float = 0.005,
               sweeps: bool = True, scan_clock_offset_s: float = 0.0,
-              single_camera_topic: bool = False, stepping_joint: bool = False,
+              single_camera_topic: bool = False, lit_s: float | None = None,
+              stepping_joint: bool = False,
               rig_json: str | Path | None = None) -> dict:
     """Record the dataset folder ``dataset`` as a bag at ``bag``; returns the RIG.json dict.
 
@@ -130,7 +131,9 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
     when given. ``angle_msg``: ``"joint"`` (JointState, radians), ``"float64"`` (radians)
     or ``"float64_deg"`` (degrees). ``scan_clock_offset_s`` stamps the scans on another clock (a LiDAR's own
     time). ``single_camera_topic``: board and stripe frames on one ``/camera/image_raw``
-    (lights on for the first ``dwell_s`` of the first stop). ``stepping_joint`` (with
+    (lights on for the first ``lit_s`` of the first stop, default ``dwell_s``; the first
+    stop lasts ``2 dwell_s``, so ``lit_s = 2 dwell_s`` leaves it without a dark frame).
+    ``stepping_joint`` (with
     ``extra_joint``): the second joint steps too (half the turntable's angle) instead of
     holding still. Deterministic for a given ``seed``.
     """
@@ -324,7 +327,8 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
                     img = board
                 else:
                     s = held(t_msg, t_msg)
-                    if single_camera_topic and s is s0 and t_msg < s0.t_a + dwell_s:
+                    if (single_camera_topic and s is s0
+                            and t_msg < s0.t_a + (dwell_s if lit_s is None else lit_s)):
                         img = board  # the lights are on for the first dwell of the first stop
                     elif s is not None:
                         img = stripe(s.index)
