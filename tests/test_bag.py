@@ -265,10 +265,47 @@ def test_image_encodings(ros2_types, enc):
     msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
                             is_bigendian=0, step=data.shape[1], data=data.reshape(-1))
     assert np.array_equal(image_from_msg(msg, IMAGE, "t"), want)
-    bad = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding="yuv422",
+    bad = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding="nv12",
                             is_bigendian=0, step=2 * w, data=np.zeros(2 * w * h, np.uint8))
-    with pytest.raises(DatasetError, match="'yuv422' is not supported"):
+    with pytest.raises(DatasetError, match="'nv12' is not supported"):
         image_from_msg(bad, IMAGE, "t")
+
+
+@pytest.mark.parametrize("enc,pattern", [("bayer_rggb8", "RGGB"), ("bayer_bggr8", "BGGR"),
+                                         ("bayer_gbrg8", "GBRG"), ("bayer_grbg8", "GRBG")])
+def test_bayer_frames_keep_their_colour(ros2_types, enc, pattern):
+    """A uniform colour mosaiced in the named pattern comes back as that colour (a wrong
+    pattern mapping would swap red and blue)."""
+    from lidarcal.io.bag import IMAGE, image_from_msg
+
+    h, w = 8, 10
+    val = {"R": 200, "G": 120, "B": 30}
+    raw = np.zeros((h, w), np.uint8)
+    for i, ch in enumerate(pattern):
+        raw[i // 2::2, i % 2::2] = val[ch]
+    msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
+                            is_bigendian=0, step=w, data=raw.reshape(-1))
+    img = image_from_msg(msg, IMAGE, "t")
+    assert img.shape == (h, w, 3)
+    assert np.array_equal(img[2:-2, 2:-2].reshape(-1, 3).min(0), [30, 120, 200])  # B, G, R
+    assert np.array_equal(img[2:-2, 2:-2].reshape(-1, 3).max(0), [30, 120, 200])
+
+
+@pytest.mark.parametrize("enc,order", [("yuv422", "UYVY"), ("yuv422_yuy2", "YUYV")])
+def test_yuv422_frames(ros2_types, enc, order):
+    from lidarcal.io.bag import IMAGE, image_from_msg
+
+    h, w = 4, 6
+    y = np.tile(np.arange(w, dtype=np.uint8) * 40, (h, 1))  # a gray ramp: U = V = 128
+    px = np.zeros((h, w, 2), np.uint8)
+    iy = order.index("Y")  # Y is byte 1 (UYVY) or byte 0 (YUYV) of each pixel
+    px[:, :, iy], px[:, :, 1 - iy] = y, 128
+    msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
+                            is_bigendian=0, step=2 * w, data=px.reshape(-1))
+    img = image_from_msg(msg, IMAGE, "t")
+    # BT.601 video range (OpenCV, cv_bridge): gray = 255/219 (Y - 16)
+    want = np.clip(np.round((y.astype(float) - 16) * 255 / 219), 0, 255)
+    assert img.shape == (h, w, 3) and np.abs(img - want[:, :, None]).max() <= 1
 
 
 def test_compressed_png16_and_bad_data(ros2_types):

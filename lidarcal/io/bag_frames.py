@@ -25,6 +25,12 @@ import numpy as np
 from .dataset import DatasetError
 
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
+# cv_bridge's conversions of raw sensor layouts to BGR (OpenCV names a Bayer pattern by its
+# second row's first two pixels: ROS bayer_rggb8 is OpenCV's BayerBG)
+_BAYER = {"bayer_rggb8": cv2.COLOR_BayerBG2BGR, "bayer_bggr8": cv2.COLOR_BayerRG2BGR,
+          "bayer_gbrg8": cv2.COLOR_BayerGR2BGR, "bayer_grbg8": cv2.COLOR_BayerGB2BGR}
+_YUV422 = {"yuv422": cv2.COLOR_YUV2BGR_UYVY, "uyvy": cv2.COLOR_YUV2BGR_UYVY,
+           "yuv422_yuy2": cv2.COLOR_YUV2BGR_YUY2, "yuyv": cv2.COLOR_YUV2BGR_YUY2}
 MIN_LIT_RATIO = 2.0  # the lights at least double the frame median
 
 
@@ -86,7 +92,8 @@ def split_lit_dark(medians: np.ndarray) -> LitSplit:
 
 
 def image_from_msg(msg, msgtype: str, where: str) -> np.ndarray:
-    """An 8-bit gray (H, W) or BGR (H, W, 3) image from an Image or CompressedImage message."""
+    """An 8-bit gray (H, W) or BGR (H, W, 3) image from an Image or CompressedImage message
+    (Bayer and YUV 4:2:2 frames converted to BGR with cv_bridge's OpenCV conversions)."""
     if msgtype == COMPRESSED:
         img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
@@ -97,15 +104,21 @@ def image_from_msg(msg, msgtype: str, where: str) -> np.ndarray:
         h, w, step = int(msg.height), int(msg.width), int(msg.step)
         buf = np.frombuffer(bytes(msg.data), np.uint8)
         chans = {"mono8": 1, "8uc1": 1, "mono16": 2, "16uc1": 2, "bgr8": 3, "rgb8": 3,
-                 "8uc3": 3, "bgra8": 4, "rgba8": 4}
+                 "8uc3": 3, "bgra8": 4, "rgba8": 4, **dict.fromkeys(_BAYER, 1),
+                 **dict.fromkeys(_YUV422, 2)}
         if enc not in chans:
             raise DatasetError(where, f"image encoding {msg.encoding!r} is not supported; record "
-                                      "mono8, mono16, bgr8 or rgb8 (or png/jpeg compressed)")
+                                      "mono8, mono16, bgr8, rgb8, bayer_*8 or yuv422 (or "
+                                      "png/jpeg compressed)")
         if buf.size < h * step or step < w * chans[enc]:
             raise DatasetError(where, f"image data of {buf.size} bytes does not fit "
                                       f"{w}x{h} {enc} with step {step}")
         rows = buf[: h * step].reshape(h, step)[:, : w * chans[enc]]
-        if chans[enc] == 2:
+        if enc in _BAYER:  # demosaiced as cv_bridge does
+            img = cv2.cvtColor(np.ascontiguousarray(rows), _BAYER[enc])
+        elif enc in _YUV422:
+            img = cv2.cvtColor(np.ascontiguousarray(rows).reshape(h, w, 2), _YUV422[enc])
+        elif chans[enc] == 2:
             img = np.ascontiguousarray(rows).view(">u2" if msg.is_bigendian else "<u2")
         elif chans[enc] == 1:
             img = rows
