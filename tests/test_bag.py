@@ -11,6 +11,7 @@ images) and the sweeps equal; any scan or frame from a move would break the equa
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -496,3 +497,51 @@ def test_lit_dark_split_from_the_frame_medians(dark, lit):
     # dark only (the dark level flickering by a few gray levels, or spread): no lit frame
     for one_cluster in (dark, [30, 31, 29, 30], [5], list(range(5, 41)), [2, 2, 2]):
         assert not split_lit_dark(np.array(one_cluster, dtype=float)).has_lit
+
+
+class _JointReader:
+    """A /joint_states topic fed by two publishers, each with its own joint (as a robot's
+    joint_state_publisher and a turntable driver do): messages alternate between them."""
+
+    def __init__(self, types):
+        from types import SimpleNamespace
+
+        self.connections = [SimpleNamespace(topic="/joint_states", msgtype=JOINT, id=0)]
+        self.msgs = []
+        for i in range(400):  # 50 Hz: 8 s, the turntable steps 1 deg every 2 s
+            t = i * 0.02
+            turn = math.radians(10.0 + np.floor(t / 2.0)) if (t % 2.0) < 1.6 else math.radians(
+                10.0 + np.floor(t / 2.0) + ((t % 2.0) - 1.6) / 0.4)
+            for name, val in (("turntable", turn), ("wheel", 0.3 * t)):
+                ns = int(1e9 + t * 1e9)
+                hdr = types["std_msgs/msg/Header"](
+                    stamp=types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                    frame_id="")
+                self.msgs.append((ns, types[JOINT](header=hdr, name=[name], position=np.array([val]),
+                                                   velocity=np.zeros(0), effort=np.zeros(0))))
+
+    def messages(self, connections):
+        for ns, m in self.msgs:
+            yield self.connections[0], ns, m
+
+    def deserialize(self, raw, msgtype):
+        return raw
+
+
+JOINT = "sensor_msgs/msg/JointState"
+
+
+def test_joint_states_from_two_publishers(ros2_types):
+    """One joint per message, two joints on the topic: never mixed; the stepping one wins."""
+    from lidarcal.io.bag import Clock, read_angles
+
+    clock = Clock()
+    a = read_angles(_JointReader(ros2_types), "/joint_states", None, "rad", Path("b"), clock)
+    assert a.psi_deg.size == 400 and a.psi_deg.min() == pytest.approx(10.0)
+    assert np.all(np.diff(a.psi_deg) >= -1e-9)  # the turntable only, no wheel readings mixed in
+    assert "joint 'turntable' is the turntable (the only joint of turntable, wheel" in clock.notes[0]
+    b = read_angles(_JointReader(ros2_types), "/joint_states", "wheel", "rad", Path("b"), Clock())
+    assert np.allclose(np.diff(b.psi_deg), np.degrees(0.3 * 0.02))
+    with pytest.raises(DatasetError, match=r"/joint_states: no joint 'pan' \(--joint\); its "
+                                           r"joints: turntable, wheel"):
+        read_angles(_JointReader(ros2_types), "/joint_states", "pan", "rad", Path("b"), Clock())

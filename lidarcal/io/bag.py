@@ -187,27 +187,25 @@ def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path,
     ts, ps = [], []
     idx: int | None = None
     several: dict[str, tuple[list[float], list[float]]] = {}  # joint -> (t, psi) to choose from
+    seen: set[str] = set()
     for conn, log_ns, raw in reader.messages(connections=conns):
         msg = reader.deserialize(raw, conn.msgtype)
         if msgtype == FLOAT64:
             val = float(msg.data)
         else:
             names, pos = list(msg.name), np.asarray(msg.position, dtype=float)
-            if joint is None and len(pos) > 1:
+            if joint is None:  # every joint by name (publishers may send different subsets)
                 t = clock.time(topic, msg, log_ns)
                 for nm, v in zip(names or [str(i) for i in range(len(pos))], pos.tolist()):
                     if math.isfinite(v):
                         several.setdefault(nm, ([], []))[0].append(t)
                         several[nm][1].append(math.degrees(v))
                 continue
-            if idx is None or idx >= len(names) or (names and names[idx] != (joint or names[idx])):
-                if joint is not None:
-                    if joint not in names:
-                        raise DatasetError(bag, f"{topic}: no joint {joint!r} (--joint); its joints: "
-                                                f"{', '.join(names) or '(unnamed)'}")
-                    idx = names.index(joint)
-                else:
-                    idx = 0
+            if idx is None or idx >= len(names) or names[idx] != joint:
+                seen.update(names)
+                if joint not in names:  # another publisher's joints
+                    continue
+                idx = names.index(joint)
             if idx >= len(pos):
                 continue
             val = float(pos[idx])
@@ -216,10 +214,14 @@ def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path,
         ts.append(clock.time(topic, msg, log_ns))
         ps.append(val if unit == "deg" and msgtype == FLOAT64 else math.degrees(val))
     if several and not ts:
-        name = _turntable_joint(several, topic, bag)
-        clock.notes.append(f"{topic}: joint {name!r} is the turntable (the only joint of "
-                           f"{', '.join(several)} that holds and steps); --joint names another")
+        name = next(iter(several)) if len(several) == 1 else _turntable_joint(several, topic, bag)
+        if len(several) > 1:
+            clock.notes.append(f"{topic}: joint {name!r} is the turntable (the only joint of "
+                               f"{', '.join(several)} that holds and steps); --joint names another")
         ts, ps = several[name]
+    if joint is not None and msgtype == JOINTSTATE and not ts:
+        raise DatasetError(bag, f"{topic}: no joint {joint!r} (--joint); its joints: "
+                                f"{', '.join(sorted(seen)) or '(unnamed)'}")
     if len(ts) < 3:
         raise DatasetError(bag, f"{topic}: {len(ts)} usable angle reading(s); need a turntable "
                                 "angle stream (--angle-topic, --joint)")
