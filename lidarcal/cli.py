@@ -91,12 +91,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, required=True, help="dataset folder to write")
     s.add_argument("--scan-topic", help="sensor_msgs/LaserScan topic (default: the only one)")
     s.add_argument("--stripe-topic", help="dark stripe frames, Image or CompressedImage "
-                                          "(default: the image topic named *stripe*)")
-    s.add_argument("--board-topic", help="lit board frames (default: the image topic named *board*)")
+                                          "(default: the image topic named *stripe*, or the "
+                                          "only one)")
+    s.add_argument("--board-topic", help="lit board frames (default: the image topic named "
+                                         "*board*, or the only one); equal to --stripe-topic: "
+                                         "one camera, lit and dark frames told apart")
     s.add_argument("--board-image", type=Path, help="the lit board image as a file instead")
     s.add_argument("--angle-topic", help="turntable angle, JointState or Float64 "
                                          "(default: the only one, or the one named *turntable*)")
-    s.add_argument("--joint", help="the turntable's name in a JointState with several joints")
+    s.add_argument("--joint", help="the turntable's name in a JointState with several joints "
+                                   "(default: the only joint that holds and steps)")
     s.add_argument("--angle-unit", choices=["rad", "deg"], default="rad",
                    help="unit of a Float64 angle topic (JointState is always radians)")
     s.add_argument("--tolerance-deg", type=float, default=None,

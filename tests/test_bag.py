@@ -11,6 +11,7 @@ images) and the sweeps equal; any scan or frame from a move would break the equa
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -47,6 +48,11 @@ def bags(rig_folder) -> dict[str, tuple[Path, Path]]:
                         "scan_clock_offset_s": -3600.0},
         "deg_angle": {"storage": "mcap", "images": "png", "sweeps": False,
                       "angle_msg": "float64_deg"},
+        "one_camera": {"storage": "sqlite3", "images": "png", "single_camera_topic": True},
+        "lit_first_stop": {"storage": "mcap", "images": "raw", "sweeps": False,
+                           "single_camera_topic": True, "lit_s": 2.0},
+        "two_steppers": {"storage": "sqlite3", "images": "png", "sweeps": False,
+                         "extra_joint": True, "stepping_joint": True},
     }.items():
         bag = root / (f"{name}.bag" if kw["storage"] == "rosbag1" else name)
         write_bag(rig_folder, bag, rig_json=root / f"{name}.json", seed=1, **kw)
@@ -84,12 +90,14 @@ def assert_same_dataset(a: Path, b: Path, exact_images: bool = True) -> None:
 def test_ros1_raw_images_cli(bags, rig_folder, tmp_path):
     bag, rig = bags["ros1_raw"]
     out = tmp_path / "ds"
-    r = lidarcal("import", bag, "--rig", rig, "--out", out)  # two joints: --joint is needed
-    assert r.returncode == 2 and r.stderr.count("\n") == 1
-    assert "has 2 joints (pan_dummy, turntable); name the turntable with --joint" in r.stderr
-    assert not out.exists()
-    r = lidarcal("import", bag, "--rig", rig, "--out", out, "--joint", "turntable")
+    # two joints, one holding still (pan_dummy), one stepping: the stepping one is the turntable
+    r = lidarcal("import", bag, "--rig", rig, "--out", out)
     assert r.returncode == 0, r.stderr
+    assert "joint 'turntable' is the turntable (the only joint of pan_dummy, turntable" in r.stderr
+    assert_same_dataset(rig_folder, out)
+    r = lidarcal("import", bag, "--rig", rig, "--out", out, "--joint", "turntable", "--overwrite")
+    assert r.returncode == 0, r.stderr
+    assert "is the turntable" not in r.stderr
     assert "6 positions" in r.stdout and "2 sweep(s)" in r.stdout
     assert_same_dataset(rig_folder, out)
     meta = json.loads((out / "dataset.json").read_text())
@@ -258,10 +266,47 @@ def test_image_encodings(ros2_types, enc):
     msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
                             is_bigendian=0, step=data.shape[1], data=data.reshape(-1))
     assert np.array_equal(image_from_msg(msg, IMAGE, "t"), want)
-    bad = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding="yuv422",
+    bad = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding="nv12",
                             is_bigendian=0, step=2 * w, data=np.zeros(2 * w * h, np.uint8))
-    with pytest.raises(DatasetError, match="'yuv422' is not supported"):
+    with pytest.raises(DatasetError, match="'nv12' is not supported"):
         image_from_msg(bad, IMAGE, "t")
+
+
+@pytest.mark.parametrize("enc,pattern", [("bayer_rggb8", "RGGB"), ("bayer_bggr8", "BGGR"),
+                                         ("bayer_gbrg8", "GBRG"), ("bayer_grbg8", "GRBG")])
+def test_bayer_frames_keep_their_colour(ros2_types, enc, pattern):
+    """A uniform colour mosaiced in the named pattern comes back as that colour (a wrong
+    pattern mapping would swap red and blue)."""
+    from lidarcal.io.bag import IMAGE, image_from_msg
+
+    h, w = 8, 10
+    val = {"R": 200, "G": 120, "B": 30}
+    raw = np.zeros((h, w), np.uint8)
+    for i, ch in enumerate(pattern):
+        raw[i // 2::2, i % 2::2] = val[ch]
+    msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
+                            is_bigendian=0, step=w, data=raw.reshape(-1))
+    img = image_from_msg(msg, IMAGE, "t")
+    assert img.shape == (h, w, 3)
+    assert np.array_equal(img[2:-2, 2:-2].reshape(-1, 3).min(0), [30, 120, 200])  # B, G, R
+    assert np.array_equal(img[2:-2, 2:-2].reshape(-1, 3).max(0), [30, 120, 200])
+
+
+@pytest.mark.parametrize("enc,order", [("yuv422", "UYVY"), ("yuv422_yuy2", "YUYV")])
+def test_yuv422_frames(ros2_types, enc, order):
+    from lidarcal.io.bag import IMAGE, image_from_msg
+
+    h, w = 4, 6
+    y = np.tile(np.arange(w, dtype=np.uint8) * 40, (h, 1))  # a gray ramp: U = V = 128
+    px = np.zeros((h, w, 2), np.uint8)
+    iy = order.index("Y")  # Y is byte 1 (UYVY) or byte 0 (YUYV) of each pixel
+    px[:, :, iy], px[:, :, 1 - iy] = y, 128
+    msg = ros2_types[IMAGE](header=_hdr(ros2_types), height=h, width=w, encoding=enc,
+                            is_bigendian=0, step=2 * w, data=px.reshape(-1))
+    img = image_from_msg(msg, IMAGE, "t")
+    # BT.601 video range (OpenCV, cv_bridge): gray = 255/219 (Y - 16)
+    want = np.clip(np.round((y.astype(float) - 16) * 255 / 219), 0, 255)
+    assert img.shape == (h, w, 3) and np.abs(img - want[:, :, None]).max() <= 1
 
 
 def test_compressed_png16_and_bad_data(ros2_types):
@@ -321,3 +366,182 @@ def test_combine_frames_is_the_per_pixel_median(k):
     want = np.floor(np.median(np.stack(frames).astype(float), axis=0) + 0.5)
     got = combine_frames(frames)
     assert got.dtype == np.uint8 and np.array_equal(got, want)
+
+
+def test_one_camera_topic_lit_board_then_dark_stripes(bags, rig_folder, tmp_path):
+    """One /camera/image_raw/compressed: lit frames at the first stop, then dark ones."""
+    bag, rig = bags["one_camera"]
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "ds", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "6 positions" in r.stdout and "2 sweep(s)" in r.stdout
+    assert_same_dataset(rig_folder, tmp_path / "ds")
+    # the board is the median of the lit frames: the folder's board image, pixel for pixel
+    assert np.array_equal(cv2.imread(str(tmp_path / "ds" / "board.png"), cv2.IMREAD_UNCHANGED),
+                          cv2.imread(str(rig_folder / "board.png"), cv2.IMREAD_UNCHANGED))
+    meta = json.loads((tmp_path / "ds" / "dataset.json").read_text())["import"]
+    assert meta["topics"]["stripe"] == meta["topics"]["board"] == "/camera/image_raw/compressed"
+    cam = meta["camera"]
+    assert cam["single_camera_topic"] and cam["board_period"]["lit_frames"] == 2
+    assert cam["board_period"]["psi_deg"] == pytest.approx(load_dataset(rig_folder).positions[0].psi_deg)
+    # the first stop: two lit frames (the board) and two dark ones (its stripes)
+    assert meta["positions"][0]["stripe_frames"] == 2
+    # both topics named the same is the same one-camera import
+    res = import_bag(bag, rig, tmp_path / "ds2", stripe_topic="/camera/image_raw",
+                     board_topic="/camera/image_raw")
+    assert len(res.positions) == 6
+    assert_same_dataset(tmp_path / "ds", tmp_path / "ds2")
+    shutil.copy(rig_folder / "truth.json", tmp_path / "ds" / "truth.json")
+    cals = {}
+    for name, ds in (("bag", tmp_path / "ds"), ("folder", rig_folder)):
+        r = lidarcal("calibrate", ds, "--out", tmp_path / f"cal_{name}", "--method", "rigid",
+                     "--no-progress")
+        assert r.returncode == 0, r.stderr
+        cals[name] = json.loads((tmp_path / f"cal_{name}" / "calibration.json").read_text())
+    from lidarcal.evaluate import pose_errors
+    from lidarcal.geometry import Pose
+
+    truth = json.loads((rig_folder / "truth.json").read_text())
+    errs = {k: pose_errors({p["index"]: Pose.from_dict(p) for p in c["poses"]}, truth)
+            for k, c in cals.items()}
+    for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):  # as in the two-topic test above
+        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-4)
+
+
+def test_a_stop_with_lit_frames_only_is_the_board_not_a_position(bags, rig_folder, tmp_path):
+    bag, rig = bags["lit_first_stop"]  # /camera/image_raw, lights on for the whole first stop
+    res = import_bag(bag, rig, tmp_path / "ds")
+    first = load_dataset(rig_folder).positions[0].psi_deg
+    assert len(res.positions) == 5 and all(abs(p.psi_deg - first) > 0.1 for p in res.positions)
+    msg = [w for w in res.warnings if "lit frames only" in w]
+    assert len(msg) == 1 and msg[0].startswith("/camera/image_raw: the still period at -0.00..2.0")
+    assert f"(psi {first:.4f} deg) has lit frames only (the board): not a stripe position" in msg[0]
+    assert np.array_equal(cv2.imread(str(tmp_path / "ds" / "board.png"), cv2.IMREAD_UNCHANGED),
+                          cv2.imread(str(rig_folder / "board.png"), cv2.IMREAD_UNCHANGED))
+    got, orig = load_dataset(tmp_path / "ds"), load_dataset(rig_folder)
+    for pa, pb in zip(orig.positions[1:], got.positions):  # the other stops: as in the folder
+        assert pb.psi_deg == pytest.approx(pa.psi_deg, abs=1e-9)
+        assert np.array_equal(cv2.imread(str(pa.stripe_image), cv2.IMREAD_UNCHANGED),
+                              cv2.imread(str(pb.stripe_image), cv2.IMREAD_UNCHANGED))
+
+
+def test_one_camera_topic_without_lit_frames_is_one_line(bags, tmp_path):
+    bag, rig = bags["ros2_png"]  # its stripe topic has dark frames only
+    topic = "/camera/stripes/image_raw"
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "x", "--stripe-topic", topic,
+                 "--board-topic", topic)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "no lit frame was found among its" in r.stderr and "--board-image" in r.stderr
+    assert "(frame medians 2..2 of 255, one cluster)" in r.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_several_stepping_joints_is_one_line(bags, tmp_path):
+    bag, rig = bags["two_steppers"]
+    r = lidarcal("import", bag, "--rig", rig, "--out", tmp_path / "x")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert ("/turntable/joint_states has 2 joints (pan_dummy (6 still angles), turntable "
+            "(6 still angles)) and 2 of them steps like a turntable; name the turntable with "
+            "--joint") in r.stderr
+    res = import_bag(bag, rig, tmp_path / "ds", joint="turntable")
+    assert len(res.positions) == 6
+
+
+class _Topic:
+    def __init__(self, msgtype: str):
+        self.msgtype = msgtype
+
+
+class _Reader:
+    """What pick_topic reads of a bag: its topics and their types."""
+
+    def __init__(self, **topics: str):
+        self.topics = {t.replace("__", "/").replace("_C", "/compressed"): _Topic(m)
+                       for t, m in topics.items()}
+
+
+def test_topic_auto_detection():
+    from lidarcal.io.bag import COMPRESSED, IMAGE, IMAGE_TYPES, LASERSCAN, pick_topic
+
+    # the same stream raw and compressed: the raw one, counted once
+    rd = _Reader(__camera__image_raw=IMAGE, __camera__image_raw_C=COMPRESSED, __scan=LASERSCAN)
+    for prefer in ("stripe", "board"):
+        assert pick_topic(rd, None, IMAGE_TYPES, "image", "--stripe-topic", Path("b"),
+                          prefer=prefer) == "/camera/image_raw"
+    # only the compressed copy: that one
+    rd = _Reader(__camera__image_raw_C=COMPRESSED)
+    assert pick_topic(rd, None, IMAGE_TYPES, "image", "--x", Path("b"),
+                      prefer="stripe") == "/camera/image_raw/compressed"
+    # two cameras without 'stripe'/'board' in their names: ask
+    rd = _Reader(__left__image_raw=IMAGE, __right__image_raw=IMAGE)
+    with pytest.raises(DatasetError, match=r"2 stripe image topics .* name it with --stripe-topic; "
+                                           r"the bag has: /left/image_raw \(sensor_msgs/Image\)"):
+        pick_topic(rd, None, IMAGE_TYPES, "stripe image", "--stripe-topic", Path("b"),
+                   prefer="stripe")
+    # two LaserScan topics (/scan, /scan_filtered): ask for --scan-topic, listing both
+    rd = _Reader(__scan=LASERSCAN, __scan_filtered=LASERSCAN)
+    with pytest.raises(DatasetError, match=r"2 LaserScan topics \(sensor_msgs/msg/LaserScan\); "
+                                           r"name it with --scan-topic; the bag has: /scan "
+                                           r"\(sensor_msgs/LaserScan\), /scan_filtered"):
+        pick_topic(rd, None, (LASERSCAN,), "LaserScan", "--scan-topic", Path("b"))
+    assert pick_topic(rd, "/scan_filtered", (LASERSCAN,), "LaserScan", "--scan-topic",
+                      Path("b")) == "/scan_filtered"
+
+
+@pytest.mark.parametrize("dark,lit", [([2, 2, 3, 2, 2, 2], [61, 60]), ([10, 14, 12, 11], [90]),
+                                      ([0, 1, 0, 0, 2], [40, 120, 41])])
+def test_lit_dark_split_from_the_frame_medians(dark, lit):
+    from lidarcal.io.bag_frames import split_lit_dark
+
+    s = split_lit_dark(np.array(dark + lit, dtype=float))
+    assert s.has_lit and max(dark) <= s.threshold < min(lit) and s.separability > 0.5
+    # dark only (the dark level flickering by a few gray levels, or spread): no lit frame
+    for one_cluster in (dark, [30, 31, 29, 30], [5], list(range(5, 41)), [2, 2, 2]):
+        assert not split_lit_dark(np.array(one_cluster, dtype=float)).has_lit
+
+
+class _JointReader:
+    """A /joint_states topic fed by two publishers, each with its own joint (as a robot's
+    joint_state_publisher and a turntable driver do): messages alternate between them."""
+
+    def __init__(self, types):
+        from types import SimpleNamespace
+
+        self.connections = [SimpleNamespace(topic="/joint_states", msgtype=JOINT, id=0)]
+        self.msgs = []
+        for i in range(400):  # 50 Hz: 8 s, the turntable steps 1 deg every 2 s
+            t = i * 0.02
+            turn = math.radians(10.0 + np.floor(t / 2.0)) if (t % 2.0) < 1.6 else math.radians(
+                10.0 + np.floor(t / 2.0) + ((t % 2.0) - 1.6) / 0.4)
+            for name, val in (("turntable", turn), ("wheel", 0.3 * t)):
+                ns = int(1e9 + t * 1e9)
+                hdr = types["std_msgs/msg/Header"](
+                    stamp=types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                    frame_id="")
+                self.msgs.append((ns, types[JOINT](header=hdr, name=[name], position=np.array([val]),
+                                                   velocity=np.zeros(0), effort=np.zeros(0))))
+
+    def messages(self, connections):
+        for ns, m in self.msgs:
+            yield self.connections[0], ns, m
+
+    def deserialize(self, raw, msgtype):
+        return raw
+
+
+JOINT = "sensor_msgs/msg/JointState"
+
+
+def test_joint_states_from_two_publishers(ros2_types):
+    """One joint per message, two joints on the topic: never mixed; the stepping one wins."""
+    from lidarcal.io.bag import Clock, read_angles
+
+    clock = Clock()
+    a = read_angles(_JointReader(ros2_types), "/joint_states", None, "rad", Path("b"), clock)
+    assert a.psi_deg.size == 400 and a.psi_deg.min() == pytest.approx(10.0)
+    assert np.all(np.diff(a.psi_deg) >= -1e-9)  # the turntable only, no wheel readings mixed in
+    assert "joint 'turntable' is the turntable (the only joint of turntable, wheel" in clock.notes[0]
+    b = read_angles(_JointReader(ros2_types), "/joint_states", "wheel", "rad", Path("b"), Clock())
+    assert np.allclose(np.diff(b.psi_deg), np.degrees(0.3 * 0.02))
+    with pytest.raises(DatasetError, match=r"/joint_states: no joint 'pan' \(--joint\); its "
+                                           r"joints: turntable, wheel"):
+        read_angles(_JointReader(ros2_types), "/joint_states", "pan", "rad", Path("b"), Clock())

@@ -47,6 +47,7 @@ from ..stationary import (
     find_stationary,
     median_period_s,
 )
+from .bag_frames import COMPRESSED, LitSplit, frame_brightness, image_from_msg, split_lit_dark
 from .dataset import (
     DATASET_FORMAT,
     DatasetError,
@@ -56,7 +57,6 @@ from .rig import RigFile, read_rig
 
 LASERSCAN = "sensor_msgs/msg/LaserScan"
 IMAGE = "sensor_msgs/msg/Image"
-COMPRESSED = "sensor_msgs/msg/CompressedImage"
 JOINTSTATE = "sensor_msgs/msg/JointState"
 FLOAT64 = "std_msgs/msg/Float64"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
@@ -134,43 +134,6 @@ def scan_from_msg(msg, t0: float) -> Scan:
                 rmax * 1000.0, r)
 
 
-def image_from_msg(msg, msgtype: str, where: str) -> np.ndarray:
-    """An 8-bit gray (H, W) or BGR (H, W, 3) image from an Image or CompressedImage message."""
-    if msgtype == COMPRESSED:
-        img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise DatasetError(where, f"a CompressedImage ({msg.format!r}) cannot be decoded; "
-                                      "png and jpeg are supported")
-    else:
-        enc = msg.encoding.lower()
-        h, w, step = int(msg.height), int(msg.width), int(msg.step)
-        buf = np.frombuffer(bytes(msg.data), np.uint8)
-        chans = {"mono8": 1, "8uc1": 1, "mono16": 2, "16uc1": 2, "bgr8": 3, "rgb8": 3,
-                 "8uc3": 3, "bgra8": 4, "rgba8": 4}
-        if enc not in chans:
-            raise DatasetError(where, f"image encoding {msg.encoding!r} is not supported; record "
-                                      "mono8, mono16, bgr8 or rgb8 (or png/jpeg compressed)")
-        if buf.size < h * step or step < w * chans[enc]:
-            raise DatasetError(where, f"image data of {buf.size} bytes does not fit "
-                                      f"{w}x{h} {enc} with step {step}")
-        rows = buf[: h * step].reshape(h, step)[:, : w * chans[enc]]
-        if chans[enc] == 2:
-            img = np.ascontiguousarray(rows).view(">u2" if msg.is_bigendian else "<u2")
-        elif chans[enc] == 1:
-            img = rows
-        else:
-            img = rows.reshape(h, w, chans[enc])
-            if enc.startswith("rgb"):
-                img = img[:, :, [2, 1, 0] + ([3] if chans[enc] == 4 else [])]
-    if img.dtype == np.uint16:
-        img = np.clip((img.astype(np.uint32) + 128) >> 8, 0, 255).astype(np.uint8)
-    if img.dtype != np.uint8:
-        raise DatasetError(where, f"expected 8- or 16-bit images, got {img.dtype}")
-    if img.ndim == 3 and img.shape[2] == 4:
-        img = img[:, :, :3]
-    return np.ascontiguousarray(img)
-
-
 # ----------------------------------------------------------------------------- topics
 
 
@@ -192,12 +155,11 @@ def pick_topic(reader, given: str | None, types: tuple[str, ...], role: str, opt
                 return name
         raise DatasetError(bag, f"no topic {given} ({option}); the bag has: {_topics_text(reader)}")
     cands = sorted(t for t, i in topics.items() if i.msgtype in types)
+    # a raw and a compressed copy of one stream (image_transport): one stream, the raw one
+    cands = [t for t in cands if not (t.endswith("/compressed") and t[:-11] in cands)]
     if prefer is not None and len(cands) > 1:
         named = [t for t in cands if prefer in t.lower()]
         cands = named if named else cands
-        if len(cands) > 1:  # a raw and a compressed copy of one stream: take the raw one
-            raw = [t for t in cands if not t.endswith("/compressed")]
-            cands = raw if len(raw) == 1 else cands
     if len(cands) == 1:
         return cands[0]
     if not required and not cands:
@@ -224,23 +186,26 @@ def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path,
     msgtype = conns[0].msgtype
     ts, ps = [], []
     idx: int | None = None
+    several: dict[str, tuple[list[float], list[float]]] = {}  # joint -> (t, psi) to choose from
+    seen: set[str] = set()
     for conn, log_ns, raw in reader.messages(connections=conns):
         msg = reader.deserialize(raw, conn.msgtype)
         if msgtype == FLOAT64:
             val = float(msg.data)
         else:
             names, pos = list(msg.name), np.asarray(msg.position, dtype=float)
-            if idx is None or idx >= len(names) or (names and names[idx] != (joint or names[idx])):
-                if joint is not None:
-                    if joint not in names:
-                        raise DatasetError(bag, f"{topic}: no joint {joint!r} (--joint); its joints: "
-                                                f"{', '.join(names) or '(unnamed)'}")
-                    idx = names.index(joint)
-                elif len(pos) == 1:
-                    idx = 0
-                else:
-                    raise DatasetError(bag, f"{topic} has {len(pos)} joints "
-                                            f"({', '.join(names)}); name the turntable with --joint")
+            if joint is None:  # every joint by name (publishers may send different subsets)
+                t = clock.time(topic, msg, log_ns)
+                for nm, v in zip(names or [str(i) for i in range(len(pos))], pos.tolist()):
+                    if math.isfinite(v):
+                        several.setdefault(nm, ([], []))[0].append(t)
+                        several[nm][1].append(math.degrees(v))
+                continue
+            if idx is None or idx >= len(names) or names[idx] != joint:
+                seen.update(names)
+                if joint not in names:  # another publisher's joints
+                    continue
+                idx = names.index(joint)
             if idx >= len(pos):
                 continue
             val = float(pos[idx])
@@ -248,12 +213,46 @@ def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path,
             continue
         ts.append(clock.time(topic, msg, log_ns))
         ps.append(val if unit == "deg" and msgtype == FLOAT64 else math.degrees(val))
+    if several and not ts:
+        name = next(iter(several)) if len(several) == 1 else _turntable_joint(several, topic, bag)
+        if len(several) > 1:
+            clock.notes.append(f"{topic}: joint {name!r} is the turntable (the only joint of "
+                               f"{', '.join(several)} that holds and steps); --joint names another")
+        ts, ps = several[name]
+    if joint is not None and msgtype == JOINTSTATE and not ts:
+        raise DatasetError(bag, f"{topic}: no joint {joint!r} (--joint); its joints: "
+                                f"{', '.join(sorted(seen)) or '(unnamed)'}")
     if len(ts) < 3:
         raise DatasetError(bag, f"{topic}: {len(ts)} usable angle reading(s); need a turntable "
                                 "angle stream (--angle-topic, --joint)")
     t, p = np.asarray(ts), np.asarray(ps)
     order = np.argsort(t, kind="stable")
     return AngleStream(t[order], p[order])
+
+
+def _turntable_joint(joints: dict[str, tuple[list[float], list[float]]], topic: str,
+                     bag: Path) -> str:
+    """The joint that moves like a turntable: its readings hold still at three or more
+    distinct angles (:func:`lidarcal.stationary.find_stationary` with the default tolerance
+    and three reading periods). Exactly one such joint, or an error listing them all."""
+    steps = {}
+    for name, (t, p) in joints.items():
+        t_a, p_a = np.asarray(t), np.asarray(p)
+        order = np.argsort(t_a, kind="stable")
+        t_a, p_a = t_a[order], p_a[order]
+        if t_a.size < 3:
+            steps[name] = 0
+            continue
+        tol = default_tolerance_deg(p_a)
+        periods = find_stationary(t_a, p_a, tol, 3.0 * median_period_s(t_a))
+        steps[name] = len({round(q.psi_deg / (2.0 * tol)) for q in periods})
+    stepping = [n for n, k in steps.items() if k >= 3]
+    if len(stepping) == 1:
+        return stepping[0]
+    seen = ", ".join(f"{n} ({k} still angle{'s' if k != 1 else ''})" for n, k in steps.items())
+    raise DatasetError(bag, f"{topic} has {len(joints)} joints ({seen}) and "
+                            f"{'none' if not stepping else len(stepping)} of them steps like a "
+                            "turntable; name the turntable with --joint")
 
 
 # ----------------------------------------------------------------------------- import
@@ -445,9 +444,6 @@ def import_bag(bag: str | os.PathLike, rig: str | os.PathLike, out: str | os.Pat
                                          prefer="board")
         else:
             topics["board"] = None
-        if topics["board"] is not None and topics["board"] == topics["stripe"]:
-            raise DatasetError(bag, f"the board and stripe topics are both {topics['stripe']}; "
-                                    "name them with --board-topic and --stripe-topic")
         return _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image,
                        tolerance_deg, min_duration_s, frame_guard_s, overwrite, progress)
     except _reader_errors() as e:
@@ -489,10 +485,13 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
                                 f"readings); positions must hold within {tol:.3g} deg for "
                                 f">= {min_dur:.3g} s (--tolerance-deg, --min-duration-s)")
 
+    lit = None
+    if topics["board"] is not None and topics["board"] == topics["stripe"]:
+        lit = _classify_frames(reader, bag, topics["stripe"], periods, frame_guard_s, clock, clock0)
     tmp = _prepare_out(out, overwrite)
     try:
         result = _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_dur,
-                         board_image, progress, tqdm, clock0, frame_guard_s, clock)
+                         board_image, progress, tqdm, clock0, frame_guard_s, clock, lit)
         _finish_out(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -501,8 +500,56 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
     return result
 
 
+@dataclass
+class _LitFrames:
+    """One camera topic for board and stripes: the lit/dark split and the board's period."""
+
+    split: LitSplit
+    board_period: int  # the stationary period with the most lit frames
+    lit_per_period: dict[int, int]
+    dark_per_period: dict[int, int]
+
+    def meta(self, periods, clock0: float) -> dict:
+        p = periods[self.board_period]
+        return {"single_camera_topic": True, "lit_threshold": self.split.threshold,
+                "lit_separability": round(self.split.separability, 4),
+                "brightness_range": [self.split.lo, self.split.hi],
+                "board_period": {"t_start_s": round(p.t_start - clock0, 6),
+                                 "t_end_s": round(p.t_end - clock0, 6), "psi_deg": p.psi_deg,
+                                 "lit_frames": self.lit_per_period[self.board_period]}}
+
+
+def _classify_frames(reader, bag: Path, topic: str, periods, guard: float, clock: Clock,
+                     clock0: float) -> _LitFrames:
+    """One pass over the camera topic: each still frame's median brightness, split into lit
+    and dark by Otsu's threshold (:func:`lidarcal.io.bag_frames.split_lit_dark`)."""
+    starts = np.array([p.t_start for p in periods])
+    meds, ks = [], []
+    for conn, log_ns, raw in reader.messages(connections=_connections(reader, topic)):
+        msg = reader.deserialize(raw, conn.msgtype)
+        t = clock.time(topic, msg, log_ns)
+        k = int(np.searchsorted(starts, t - guard, side="right")) - 1
+        if k >= 0 and periods[k].contains(t - guard, t + guard):
+            meds.append(frame_brightness(image_from_msg(msg, conn.msgtype, f"{bag}: {topic}")))
+            ks.append(k)
+    split = split_lit_dark(np.asarray(meds))
+    if not split.has_lit:
+        rng = f"{split.lo:.0f}..{split.hi:.0f}" if meds else "none"
+        raise DatasetError(bag, f"{topic} is the board and the stripe topic but no lit frame was "
+                                f"found among its {len(meds)} still frames (frame medians {rng} "
+                                "of 255, one cluster); give the board as --board-image FILE "
+                                "or its own --board-topic")
+    lit, dark = {}, {}
+    for m, k in zip(meds, ks):
+        d = lit if m > split.threshold else dark
+        d[k] = d.get(k, 0) + 1
+    best = max(lit, key=lambda k: (lit[k], -k))
+    return _LitFrames(split, best, lit, dark)
+
+
 def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_dur, board_image,
-            progress, tqdm, clock0, frame_guard_s, clock: Clock) -> ImportResult:
+            progress, tqdm, clock0, frame_guard_s, clock: Clock,
+            lit: _LitFrames | None = None) -> ImportResult:
     starts = np.array([p.t_start for p in periods])
 
     def period_of(t0: float, t1: float) -> int:
@@ -511,7 +558,8 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
 
     (tmp / "stripes").mkdir()
     (tmp / "scans").mkdir()
-    conns = {role: _connections(reader, t) for role, t in topics.items() if t}
+    conns = {role: _connections(reader, t) for role, t in topics.items()
+             if t and not (role == "board" and t == topics["stripe"])}  # one camera: once
     role_of = {c.id: (role, c) for role, cs in conns.items() if role != "angle" for c in cs}
     wanted = [c for role, cs in conns.items() if role != "angle" for c in cs]
     acc: dict[int, _Acc] = {}
@@ -564,6 +612,10 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
                 continue
             img = image_from_msg(msg, c.msgtype, f"{bag}: {c.topic}")
             k = period_of(t - frame_guard_s, t + frame_guard_s)
+            if lit is not None and k >= 0 and frame_brightness(img) > lit.split.threshold:
+                role = "board"  # a lit frame of the one camera topic: the board, never a stripe
+                if k != lit.board_period:
+                    continue
             if role == "board":
                 if k >= 0 and board is None:
                     if k in done:
@@ -587,6 +639,12 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
         raise DatasetError(bag, f"{topics['scan']}: no LaserScan messages")
     if frame_shape is None:
         raise DatasetError(bag, f"{topics['stripe']}: no stripe frames")
+    if lit is not None:
+        for k in sorted(k for k in lit.lit_per_period if not lit.dark_per_period.get(k)):
+            p = periods[k]
+            warn.append(f"{topics['stripe']}: the still period at {p.t_start - clock0:.2f}.."
+                        f"{p.t_end - clock0:.2f} s (psi {p.psi_deg:.4f} deg) has lit frames only "
+                        "(the board): not a stripe position")
     # positions: periods with at least one whole scan and one stripe frame, in time order
     used, skipped = [], []
     for k, p in enumerate(periods):
@@ -669,6 +727,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
                                if w.reference_diameter_mm is not None else {})}
                            for w, _, _ in windows],
           "import": {"bag": str(bag), "topics": topics, "clock": dict(clock.mode),
+                     **({"camera": lit.meta(periods, clock0)} if lit is not None else {}),
                      "tolerance_deg": tol, "min_duration_s": min_dur,
                      "encoder_resolution_deg": encoder_resolution_deg(angles.psi_deg),
                      "angle_rate_hz": 1.0 / median_period_s(angles.t_s),

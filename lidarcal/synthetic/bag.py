@@ -16,6 +16,9 @@ whole recording, so scans and stripe frames are also taken DURING the moves:
   jpeg ``CompressedImage``), running during the calibration only: the position's stripe
   image while still, a shifted and blurred frame while moving;
 - ``/camera/board/image_raw`` (or compressed): the lit board image, at the first stop.
+- or, with ``single_camera_topic=True``, one ``/camera/image_raw`` (or compressed) for
+  both: the lights are on for the first ``dwell_s`` of the first stop (lit board frames),
+  then off (stripe frames), as a lab with one camera records.
 
 ``write_bag`` also writes the RIG.json that ``lidarcal import`` needs and returns it.
 """
@@ -116,6 +119,8 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
               angle_msg: str = "joint", extra_joint: bool = False,
               encoder_step_deg: float | None = None, hold_band_deg: float = 0.005,
               sweeps: bool = True, scan_clock_offset_s: float = 0.0,
+              single_camera_topic: bool = False, lit_s: float | None = None,
+              stepping_joint: bool = False,
               rig_json: str | Path | None = None) -> dict:
     """Record the dataset folder ``dataset`` as a bag at ``bag``; returns the RIG.json dict.
 
@@ -125,7 +130,12 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
     sweep windows in seconds from the bag's first message) is written to ``rig_json``
     when given. ``angle_msg``: ``"joint"`` (JointState, radians), ``"float64"`` (radians)
     or ``"float64_deg"`` (degrees). ``scan_clock_offset_s`` stamps the scans on another clock (a LiDAR's own
-    time). Deterministic for a given ``seed``.
+    time). ``single_camera_topic``: board and stripe frames on one ``/camera/image_raw``
+    (lights on for the first ``lit_s`` of the first stop, default ``dwell_s``; the first
+    stop lasts ``2 dwell_s``, so ``lit_s = 2 dwell_s`` leaves it without a dark frame).
+    ``stepping_joint`` (with
+    ``extra_joint``): the second joint steps too (half the turntable's angle) instead of
+    holding still. Deterministic for a given ``seed``.
     """
     if storage not in ("rosbag1", "sqlite3", "mcap"):
         raise ValueError(f"storage must be rosbag1, sqlite3 or mcap, got {storage!r}")
@@ -232,7 +242,7 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
         k += 1
         tt += 1.0 / camera_hz
     s0 = stops[0]
-    for tb in (s0.t_a + 0.25, s0.t_a + 0.75):
+    for tb in (() if single_camera_topic else (s0.t_a + 0.25, s0.t_a + 0.75)):
         events.append((tb + 0.030, k, "board", tb, None))
         k += 1
     events.sort()
@@ -271,13 +281,16 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
         j = bisect.bisect_right(arrivals, t0)
         return cal_stops[max(j - 1, 0)]
 
-    topic_img = "/camera/stripes/image_raw" + ("" if images == "raw" else "/compressed")
-    topic_board = "/camera/board/image_raw" + ("" if images == "raw" else "/compressed")
+    cams = ("/camera/image_raw",) * 2 if single_camera_topic else (
+        "/camera/stripes/image_raw", "/camera/board/image_raw")
+    topic_img, topic_board = (c + ("" if images == "raw" else "/compressed") for c in cams)
     img_type = "sensor_msgs/msg/Image" if images == "raw" else "sensor_msgs/msg/CompressedImage"
     angle_topic = "/turntable/joint_states" if angle_msg == "joint" else "/turntable/angle"
     angle_type = "sensor_msgs/msg/JointState" if angle_msg == "joint" else "std_msgs/msg/Float64"
     specs = {"angle": (angle_topic, angle_type), "scan": ("/scan", "sensor_msgs/msg/LaserScan"),
              "stripe": (topic_img, img_type), "board": (topic_board, img_type)}
+    if single_camera_topic:
+        del specs["board"]
     writer, conns = _open_writer(Path(bag), storage, ts, specs)
     serialize = ts.serialize_ros1 if ros1 else ts.serialize_cdr
     try:
@@ -289,7 +302,8 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
                 rad = math.radians(psi)
                 if angle_msg == "joint":
                     names = ["pan_dummy", "turntable"] if extra_joint else ["turntable"]
-                    pos = [0.1, rad] if extra_joint else [rad]
+                    pos = ([0.5 * rad if stepping_joint else 0.1, rad] if extra_joint
+                           else [rad])
                     msg = ts.types["sensor_msgs/msg/JointState"](
                         header=_header(ts, t_msg, ros1, "base"), name=names,
                         position=np.array(pos), velocity=np.zeros(0), effort=np.zeros(0))
@@ -313,7 +327,10 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
                     img = board
                 else:
                     s = held(t_msg, t_msg)
-                    if s is not None:
+                    if (single_camera_topic and s is s0
+                            and t_msg < s0.t_a + (dwell_s if lit_s is None else lit_s)):
+                        img = board  # the lights are on for the first dwell of the first stop
+                    elif s is not None:
                         img = stripe(s.index)
                     else:  # moving: shifted, blurred, brighter
                         base = stripe(last_stop_before(t_msg).index)
