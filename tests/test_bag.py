@@ -115,30 +115,35 @@ def test_ros1_raw_images_cli(bags, rig_folder, tmp_path):
         assert mb.reference_diameter_mm == ma.reference_diameter_mm
 
 
+def assert_calibrates_like_the_folder(imported, rig_folder, tmp_path, n_positions: int):
+    """``lidarcal calibrate`` on the imported dataset and on the folder give the same true errors
+    (the same inputs up to the LaserScan's float32 beam angles, ~1e-7 relative: equal to 1e-4
+    mm / deg, measured differences ~3e-6, far below any noise)."""
+    from lidarcal.evaluate import pose_errors
+    from lidarcal.geometry import Pose
+
+    shutil.copy(rig_folder / "truth.json", imported / "truth.json")
+    truth = json.loads((rig_folder / "truth.json").read_text())
+    errs = {}
+    for name, ds in (("bag", imported), ("folder", rig_folder)):
+        r = lidarcal("calibrate", ds, "--out", tmp_path / f"cal_{name}", "--method", "rigid",
+                     "--no-progress")
+        assert r.returncode == 0, r.stderr
+        cal = json.loads((tmp_path / f"cal_{name}" / "calibration.json").read_text())
+        errs[name] = pose_errors({p["index"]: Pose.from_dict(p) for p in cal["poses"]}, truth)
+    assert len(errs["bag"]) == n_positions
+    for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):
+        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-4)
+    return errs
+
+
 def test_ros2_png_import_then_calibrate_matches_the_folder(bags, rig_folder, tmp_path):
     bag, rig = bags["ros2_png"]
     res = import_bag(bag, rig, tmp_path / "ds")  # Float64 angle: bag log times for every topic
     assert len(res.positions) == 6 and all(p.n_frames >= 2 and p.n_scans >= 30
                                            for p in res.positions)
     assert_same_dataset(rig_folder, tmp_path / "ds")
-    shutil.copy(rig_folder / "truth.json", tmp_path / "ds" / "truth.json")
-    cals = {}
-    for name, ds in (("bag", tmp_path / "ds"), ("folder", rig_folder)):
-        r = lidarcal("calibrate", ds, "--out", tmp_path / f"cal_{name}", "--method", "rigid",
-                     "--no-progress")
-        assert r.returncode == 0, r.stderr
-        cals[name] = json.loads((tmp_path / f"cal_{name}" / "calibration.json").read_text())
-    from lidarcal.evaluate import pose_errors
-    from lidarcal.geometry import Pose
-
-    truth = json.loads((rig_folder / "truth.json").read_text())
-    errs = {k: pose_errors({p["index"]: Pose.from_dict(p) for p in c["poses"]}, truth)
-            for k, c in cals.items()}
-    assert len(errs["bag"]) == 6
-    # the same inputs up to the LaserScan's float32 beam angles (~1e-7 relative): the same
-    # true errors to 1e-4 mm / deg (measured differences ~3e-6), far below any noise
-    for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):
-        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-4)
+    errs = assert_calibrates_like_the_folder(tmp_path / "ds", rig_folder, tmp_path, 6)
     assert errs["bag"]["centre_mm"].mean() < 1.0  # 6 positions, 0.25 deg apart
 
 
@@ -390,21 +395,7 @@ def test_one_camera_topic_lit_board_then_dark_stripes(bags, rig_folder, tmp_path
                      board_topic="/camera/image_raw")
     assert len(res.positions) == 6
     assert_same_dataset(tmp_path / "ds", tmp_path / "ds2")
-    shutil.copy(rig_folder / "truth.json", tmp_path / "ds" / "truth.json")
-    cals = {}
-    for name, ds in (("bag", tmp_path / "ds"), ("folder", rig_folder)):
-        r = lidarcal("calibrate", ds, "--out", tmp_path / f"cal_{name}", "--method", "rigid",
-                     "--no-progress")
-        assert r.returncode == 0, r.stderr
-        cals[name] = json.loads((tmp_path / f"cal_{name}" / "calibration.json").read_text())
-    from lidarcal.evaluate import pose_errors
-    from lidarcal.geometry import Pose
-
-    truth = json.loads((rig_folder / "truth.json").read_text())
-    errs = {k: pose_errors({p["index"]: Pose.from_dict(p) for p in c["poses"]}, truth)
-            for k, c in cals.items()}
-    for col in ("centre_mm", "z_axis_deg", "x_axis_deg"):  # as in the two-topic test above
-        assert np.allclose(errs["bag"][col], errs["folder"][col], atol=1e-4)
+    assert_calibrates_like_the_folder(tmp_path / "ds", rig_folder, tmp_path, 6)
 
 
 def test_a_stop_with_lit_frames_only_is_the_board_not_a_position(bags, rig_folder, tmp_path):
