@@ -9,20 +9,16 @@ import math
 import numpy as np
 import pandas as pd
 
+from .. import paper
 from ..evaluate import pose_error
 from ..geometry import Pose
 from .markup import fnum
 
-#: The paper's Table 1 (fitted function vs the 87 samples): (mean, max).
-PAPER_TABLE1 = {"centre_mm": (1.12, 2.72), "z_axis_deg": (0.203, 0.455),
-                "x_axis_deg": (0.662, 1.580)}
-
-#: The paper's Table 2: trial, diameter (mm), |error| (mm); reference 140 mm.
-PAPER_TABLE2 = [(1, 137.12, 2.88), (2, 135.80, 4.20), (3, 134.89, 5.11), (4, 142.63, 2.63),
-                (5, 138.48, 1.52), (6, 135.64, 4.36), (7, 141.57, 1.57), (8, 136.87, 3.13),
-                (9, 139.81, 0.19), (10, 142.08, 2.08)]
-PAPER_TABLE2_MEAN = (138.49, 2.77)  # mean diameter, mean |error|
-PAPER_REFERENCE_MM = 140.0
+# the paper's published figures, under the names the report has always used
+PAPER_TABLE1 = paper.TABLE1
+PAPER_TABLE2 = paper.TABLE2
+PAPER_TABLE2_MEAN = paper.TABLE2_MEAN
+PAPER_REFERENCE_MM = paper.REFERENCE_MM
 
 #: Decimals used in the tables (tests format with the same precision).
 DECIMALS = {"centre_mm": 3, "z_axis_deg": 4, "x_axis_deg": 4, "diameter_mm": 2, "error_mm": 2}
