@@ -124,7 +124,7 @@ class CalibrationResult:
                 f"{np.array2string(ax.point, precision=2)} mm")
 
 
-def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView, BoardView],
+def solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView, BoardView],
                     lidar: LidarSpec, rho: float | None) -> PositionResult:
     """Paper section 1 at one position: stripe lines (1.3), scan lines (1.4), pose (1.5).
 
@@ -152,9 +152,11 @@ def _solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView,
     return PositionResult(pos.index, pos.psi_deg, cl, seg, ll, pose)
 
 
-def _solve_safe(args) -> PositionResult | DatasetError:
+def solve_safe(args) -> PositionResult | DatasetError:
+    """:func:`solve_position`, its failure returned (a named DatasetError), never raised: a
+    position that fails alone."""
     try:
-        return _solve_position(*args)
+        return solve_position(*args)
     except DatasetError as e:
         return e
     except Exception as e:  # noqa: BLE001  (unforeseen input: the position fails alone, named)
@@ -193,7 +195,7 @@ def _init_worker(camera: CameraModel, boards: tuple[BoardView, BoardView],
 
 def _solve_task(task: tuple[Position, float | None]) -> PositionResult | DatasetError:
     pos, rho = task
-    return _solve_safe((pos, _WORKER["camera"], _WORKER["boards"], _WORKER["lidar"], rho))
+    return solve_safe((pos, _WORKER["camera"], _WORKER["boards"], _WORKER["lidar"], rho))
 
 
 def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
@@ -320,7 +322,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
                                              chunksize=chunk), len(todo), progress))
     else:
         jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
-        outcomes = [_solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
+        outcomes = [solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
     results, failed = _apply_skip_policy(ds, todo, outcomes, strict)
     skipped += [(i, str(e)) for i, e in failed]
     warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]

@@ -111,26 +111,18 @@ def dataset_summary(ds: Dataset) -> pd.DataFrame:
 
 def shown_position(ds: Dataset, camera, boards, rho: float | None = None):
     """The position a notebook shows step by step (sections 1.3-1.4): the first of
-    positions.csv whose stripe image gives a laser plane and whose scan shows the V, read as
-    ``calibrate`` reads them (``lidar.laser_colour``, the dataset's reflectance ratio ``rho``).
-    A recorded dataset's first position may be one that ``calibrate`` skips. Returns the
-    position and one line per position passed over."""
-    import numpy as np
-
-    from .io.dataset import read_scan, read_stripe_image
-    from .scan import split_v
-    from .stripe import camera_lines
+    positions.csv that ``calibrate`` solves (:func:`lidarcal.pipeline.solve_position`, with
+    the dataset's reflectance ratio ``rho``; a failure is one that ``calibrate`` would skip,
+    :func:`~lidarcal.pipeline.solve_safe`). A recorded dataset's first position may be one
+    that ``calibrate`` skips. Returns the position and one line per position passed over."""
+    from .pipeline import solve_safe
 
     passed_over = []
     for pos in ds.positions:
-        try:
-            img = read_stripe_image(pos.stripe_image, camera.image_size, ds.lidar.laser_colour)
-            cl = camera_lines(camera, img, boards, rho=rho)
-            ang, rng = read_scan(pos.scan, ds.lidar)
-            split_v(ang, rng, alpha=cl.alpha)
+        got = solve_safe((pos, camera, boards, ds.lidar, rho))
+        if not isinstance(got, DatasetError):
             return pos, passed_over
-        except (DatasetError, ValueError, np.linalg.LinAlgError) as e:
-            passed_over.append(f"position {pos.index} passed over: {e}")
+        passed_over.append(f"position {pos.index} passed over: {got}")
     raise DatasetError(ds.root / "positions.csv", "no position gives both a laser plane from its "
                                                   "stripes and the V in its scan; run lidarcal "
                                                   "check on the dataset")

@@ -73,7 +73,7 @@ def main() -> None:
     clk.stage("scans", lambda: [read_scan(p.scan, ds.lidar) for p in ds.positions])
     boards = clk.stage("boards", P.find_boards, ds, camera)
     rho = clk.stage("rho", P.dataset_reflectance_ratio, camera, boards, ds.positions)
-    results = clk.stage("positions", lambda: [P._solve_position(p, camera, boards, ds.lidar, rho)
+    results = clk.stage("positions", lambda: [P.solve_position(p, camera, boards, ds.lidar, rho)
                                               for p in ds.positions])
     psi = [r.psi_deg for r in results]
     samples = [r.pose for r in results]

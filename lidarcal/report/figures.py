@@ -118,25 +118,17 @@ def _detail(inp: ReportInputs) -> _Detail:
 
 
 def _resolve_position(pos, camera: CameraModel, boards, ds: Dataset, cal: dict):
-    """Section 1 again at one position, with the pipeline's own per-position step.
-
-    Follows the pipeline's signature: newer versions take the dataset's stripe
-    reflectance ratio ``rho`` (read from calibration.json when stored there,
-    else re-estimated from the dataset as the pipeline does).
-    """
-    import inspect
-
+    """Section 1 again at one position, with the pipeline's own per-position step and the
+    dataset's stripe reflectance ratio (from calibration.json when stored there, else
+    re-estimated from the positions the calibration used, as the pipeline does)."""
     from .. import pipeline
 
-    params = list(inspect.signature(pipeline._solve_position).parameters)
-    if len(params) >= 5 and params[4] == "rho":
-        rho = cal.get("reflectance_ratio", (cal.get("stripe") or {}).get("reflectance_ratio"))
-        if rho is None and hasattr(pipeline, "dataset_reflectance_ratio"):
-            used = {int(r["index"]) for r in cal.get("samples", [])}
-            rho = pipeline.dataset_reflectance_ratio(
-                camera, boards, [p for p in ds.positions if p.index in used])
-        return pipeline._solve_position(pos, camera, boards, ds.lidar, rho)
-    return pipeline._solve_position(pos, camera, boards, ds.lidar, camera.image_size)
+    rho = cal.get("reflectance_ratio", (cal.get("stripe") or {}).get("reflectance_ratio"))
+    if rho is None:
+        used = {int(r["index"]) for r in cal.get("samples", [])}
+        rho = pipeline.dataset_reflectance_ratio(
+            camera, boards, [p for p in ds.positions if p.index in used])
+    return pipeline.solve_position(pos, camera, boards, ds.lidar, rho)
 
 
 def _reprojection_errors(intr) -> tuple[list[np.ndarray], list[str]]:
