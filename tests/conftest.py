@@ -26,8 +26,7 @@ def small_dataset(tmp_path_factory) -> Path:
 def opencv_photos() -> list[Path]:
     """OpenCV's sample chessboard photos (left*.jpg, 9x6; tests/data/opencv_left/README.md)."""
     paths = sorted(OPENCV_LEFT.glob("left*.jpg"))
-    if len(paths) < 10:
-        pytest.skip("OpenCV sample chessboard photos are not in tests/data/opencv_left")
+    assert len(paths) >= 10, "OpenCV's sample photos belong in tests/data/opencv_left"
     return paths
 
 

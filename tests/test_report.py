@@ -244,11 +244,9 @@ def test_table2_prior_and_old_measurements(tmp_path):
 # ---------------------------------------------------------------- end to end on a simulated rig
 
 
-def _simulate(out: Path) -> Path | None:
-    try:
-        from lidarcal.synthetic import simulate
-    except ImportError:
-        return None
+def _simulate(out: Path) -> Path:
+    from lidarcal.synthetic import simulate
+
     # three positions over the whole sweep, no intrinsics views, no disc sweeps: fast
     return Path(simulate(out, seed=0, rig="paper", positions=[0, 43, 86], with_sweeps=False,
                          with_intrinsics=False, overwrite=True))
@@ -257,10 +255,7 @@ def _simulate(out: Path) -> Path | None:
 @pytest.fixture(scope="module")
 def small_dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "rig"
-    path = _simulate(out)
-    if path is None:
-        pytest.skip("simulator not available yet")
-    return path
+    return _simulate(out)
 
 
 @pytest.fixture(scope="module")
