@@ -9,6 +9,22 @@ unequal reflectivities move the half-energy point. Whatever the physics, the
 result is a radial offset of the detected rim that scales with the beam's
 footprint at the disc, the same for discs of any size.
 
+Two parts of that response depend on the disc's pose and are modelled, not
+left to the edge model (each moved a calibrated diameter by up to ~0.1 mm
+between discs of one rig, several times the fit's sigma):
+
+* the energy ratio: a diffuse (Lambertian) surface returns energy in
+  proportion to ``cos(incidence)``, so a tilted disc in front of a wall
+  returns less than a disc facing the beam; mixed ranges are read with that
+  ratio (:func:`edge_footprint`, :class:`lidarcal.measure.Footprint`
+  ``lambertian``); the disc's albedo against the background's stays unknown
+  and is part of ``k``;
+* foreshortening: the offset is a distance across the beam; on a disc tilted
+  by ``i`` it is up to ``1 / cos i`` longer in the disc plane where the rim
+  runs across the tilt. The *rim stretch* ``s`` (``DiscMeasurement.info
+  ["rim_stretch"]``, >= 1) is its mean over the rim crossings as the circle
+  fit weighs them.
+
 Edge model (``type: "offset_beam_spacing"``)
 -------------------------------------------
 The detected rim lies ``delta = k * u`` outside the true rim, with ``u`` the
@@ -18,17 +34,23 @@ LiDAR's beam step in radians): the one footprint scale every dataset states
 (the beam divergence is not in the data; scanners are built with spots of
 the order of their beam step). So::
 
-    D = D_half - 2 k u,    sigma_D^2 = sigma_fit^2 + (2 u sigma_k)^2
+    D = D_half - 2 k u s,    sigma_D^2 = sigma_fit^2 + (2 u s sigma_k)^2 + (c sigma_offset)^2
 
 ``D_half`` the half-share diameter, ``sigma_fit`` its random uncertainty (the
 larger of the least-squares sigma and a sector bootstrap of the rim
-crossings, :func:`random_sigma_mm`).
+crossings, :func:`random_sigma_mm`), ``u s`` the *edge spacing*. The last
+term is the calibration's range offset (``calibration.json`` ``ranging``
+``offset_sigma_mm``, :mod:`lidarcal.ranging`): an offset error ``e`` scales a
+disc at range ``rho`` across the beams by ``-e / rho`` (``dD = -D e / rho`` for a disc facing
+the LiDAR) and, through the references, ``k``; ``c`` is the sum (:func:`offset_sensitivity`). The pose
+function's own covariance moves a diameter by < 0.001 mm (a rigid error of the
+LiDAR pose; measured on simulated rigs against the true poses) and is left out.
 
 - **Reference** (``source: "reference"``): discs of known diameter measured on
-  the same rig give ``k_i = (D_half,i - D_ref,i) / (2 u_i)``; ``k`` is their
+  the same rig give ``k_i = (D_half,i - D_ref,i) / (2 u_i s_i)``; ``k`` is their
   mean, ``sigma_k`` the larger of the propagated fit uncertainty and (with
   three or more references) the standard error of their spread; the sigma of
-  a disc at another range adds ``k |u - u_ref|`` (:meth:`EdgeModel.apply`).
+  a disc at another range adds ``k |u s - u_ref s_ref|`` (:meth:`EdgeModel.apply`).
 - **Prior** (``source: "prior"``, no reference): ``k`` uniform on an interval
   (mean the centre, ``sigma_k = width / sqrt(12)``) chosen by what the rim
   shows. The *mixed share* is the fraction of rim crossings whose outer beam
@@ -87,7 +109,8 @@ class EdgeModel:
         return EdgeModel(0.5 * (lo + hi), (hi - lo) / np.sqrt(12.0), "prior", echo=echo)
 
     def apply(self, diameter_half_mm: float, fit_sigma_mm: float, spacing_mm: float) -> tuple[float, float]:
-        """Corrected diameter and its 1-sigma (mm): ``D_half - 2 k u``, module docstring.
+        """Corrected diameter and its 1-sigma (mm): ``D_half - 2 k u s``, module docstring;
+        ``spacing_mm`` is the edge spacing ``u s`` (:func:`edge_spacing_mm`).
 
         From references, a third term covers the offset's unknown scaling with
         range: ``k u`` (a spot growing with range) against a constant ``k u_ref``
@@ -104,8 +127,17 @@ class EdgeModel:
         return {"type": "offset_beam_spacing", "source": self.source, "echo": self.echo, "k": self.k,
                 "k_sigma": self.k_sigma, "references": list(self.references),
                 "k_references": list(self.k_references), "beam_spacing_ref_mm": self.spacing_ref_mm,
-                "formula": "diameter_mm = diameter_half_mm - 2 k beam_spacing_mm; "
+                "formula": "diameter_mm = diameter_half_mm - 2 k edge_spacing_mm; "
+                           "edge_spacing_mm = beam_spacing_mm x rim_stretch; "
                            "beam_spacing_mm = range to the disc x angle step (rad)"}
+
+
+def edge_footprint():
+    """The :class:`lidarcal.measure.Footprint` discs are measured with: diffuse surfaces, the
+    energy ratio of disc and background scaled by their ``cos(incidence)`` (module docstring)."""
+    from .measure import Footprint  # lazy: measure imports pandas and scipy
+
+    return Footprint(lambertian=True)
 
 
 def random_sigma_mm(measurement, sectors: int = 12, n_boot: int = 200, seed: int = 0) -> float:
@@ -153,11 +185,37 @@ def beam_spacing_mm(center_mm: np.ndarray, lidar_origin_mm: np.ndarray, angle_st
     return rho * np.radians(angle_step_deg)
 
 
+def edge_spacing_mm(measurement, lidar_origin_mm: np.ndarray, angle_step_deg: float) -> float:
+    """The edge model's unit on this disc, ``u s``: beam spacing times rim stretch (module
+    docstring; ``s`` from ``measurement.info["rim_stretch"]``, 1 when absent)."""
+    s = float(measurement.info.get("rim_stretch", 1.0))
+    return beam_spacing_mm(measurement.center_mm, lidar_origin_mm, angle_step_deg) * s
+
+
+def offset_sensitivity(diameter_mm: np.ndarray, range_mm: np.ndarray, spacing_mm: np.ndarray,
+                       reference: np.ndarray, cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:
+    """d(diameter)/d(range offset error) of each disc after the edge model (module docstring).
+
+    An offset error ``e`` moves every return along its beam: the disc's extent across the
+    beams scales by ``-e / rho``, its extent along them (``D sin i`` for a disc tilted by ``i``)
+    does not; the circle averages the two directions: ``a = -D (1 + cos^2 i) / (2 rho)``.
+    With references (``reference`` True), ``k`` is the mean of ``(D_half - D_ref) / (2 u s)``
+    and moves by ``mean(a_r / (2 u_r s_r)) e``, so ``c = a - u s mean(a_r / (u_r s_r))``;
+    without, ``c = a`` (the prior ``k`` does not depend on the data).
+    """
+    a = -np.asarray(diameter_mm, float) * (1.0 + np.asarray(cos_incidence, float) ** 2) \
+        / (2.0 * np.asarray(range_mm, float))
+    u = np.asarray(spacing_mm, float)
+    ref = np.asarray(reference, bool)
+    return a - u * np.mean(a[ref] / u[ref]) if ref.any() else a
+
+
 def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm: np.ndarray,
                    spacing_mm: np.ndarray, reference_mm: np.ndarray) -> EdgeModel:
     """Edge offset ``k`` from reference discs of known diameter (module docstring).
 
-    Each reference gives ``k_i = (D_half,i - D_ref,i) / (2 u_i)``; returns their
+    Each reference gives ``k_i = (D_half,i - D_ref,i) / (2 u_i s_i)`` (``spacing_mm``: the edge
+    spacings ``u s``, :func:`edge_spacing_mm`); returns their
     mean with ``sigma_k`` = max(propagated fit sigma, spread / sqrt(n) for n >= 3).
     A ``k`` outside :data:`PLAUSIBLE_K` or references that disagree by more
     than 4 sigma are reported in ``warnings`` (a wrong reference diameter?).
@@ -202,6 +260,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
     from .api import load_calibration
     from .io.dataset import DatasetError, load_dataset, read_sweep
     from .measure import measure_disc
+    from .ranging import ranging_of
 
     ds = load_dataset(dataset)
     cal = calibration if hasattr(calibration, "pose") else load_calibration(calibration)
@@ -226,7 +285,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                                                 "supported (only 'disc')")
         sweep = read_sweep(m.sweep, ds.lidar)
         try:
-            r = measure_disc(sweep, cal, ds.lidar)
+            r = measure_disc(sweep, cal, ds.lidar, footprint=edge_footprint())
         except ValueError as e:
             raise DatasetError(m.sweep, str(e)) from None
         origin = cal.pose(float(np.median(sweep["psi_deg"].to_numpy(float)))).T
@@ -234,6 +293,11 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                      "reference": m.name in refs, "diameter_half_mm": r.diameter_mm,
                      "fit_sigma_mm": max(r.diameter_std_mm, random_sigma_mm(r)),
                      "beam_spacing_mm": beam_spacing_mm(r.center_mm, origin, ds.lidar.angle_step_deg),
+                     "rim_stretch": float(r.info["rim_stretch"]),
+                     "edge_spacing_mm": edge_spacing_mm(r, origin, ds.lidar.angle_step_deg),
+                     "range_mm": float(np.linalg.norm(r.center_mm - origin)),
+                     "cos_incidence": float(abs(r.normal @ (r.center_mm - origin))
+                                            / np.linalg.norm(r.center_mm - origin)),
                      "center_mm": r.center_mm.tolist(), "normal": r.normal.tolist(),
                      "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm,
                      "mixed_share": mixed_share(r.info)})
@@ -242,14 +306,19 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
         edge = fit_edge_model([row["name"] for row in sel],
                               np.array([row["diameter_half_mm"] for row in sel]),
                               np.array([row["fit_sigma_mm"] for row in sel]),
-                              np.array([row["beam_spacing_mm"] for row in sel]),
+                              np.array([row["edge_spacing_mm"] for row in sel]),
                               np.array([row["reference_diameter_mm"] for row in sel]))
         edge = replace(edge, echo=EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows]))).echo)
     else:
         edge = EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows])))
+    offset_sigma = float(ranging_of(cal).offset_sigma_mm)
+    sens = offset_sensitivity([row["diameter_half_mm"] for row in rows], [row["range_mm"] for row in rows],
+                              [row["edge_spacing_mm"] for row in rows], [row["reference"] for row in rows],
+                              [row["cos_incidence"] for row in rows])
     out = []
-    for row in rows:
-        d, s = edge.apply(row["diameter_half_mm"], row["fit_sigma_mm"], row["beam_spacing_mm"])
+    for row, c in zip(rows, sens):
+        d, s = edge.apply(row["diameter_half_mm"], row["fit_sigma_mm"], row["edge_spacing_mm"])
+        s = float(np.hypot(s, c * offset_sigma))
         ref = row["reference_diameter_mm"]
         out.append({"name": row["name"], "diameter_mm": d, "diameter_sigma_mm": s,
                     "reference_diameter_mm": ref, "error_mm": None if ref is None else d - ref,
@@ -257,9 +326,11 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                     "center_mm": row["center_mm"], "normal": row["normal"], "points": row["points"],
                     "naive_diameter_mm": row["naive_diameter_mm"],
                     "diameter_half_mm": row["diameter_half_mm"], "beam_spacing_mm": row["beam_spacing_mm"],
-                    "edge_offset_mm": edge.k * row["beam_spacing_mm"], "mixed_share": row["mixed_share"]})
+                    "rim_stretch": row["rim_stretch"], "edge_spacing_mm": row["edge_spacing_mm"],
+                    "edge_offset_mm": edge.k * row["edge_spacing_mm"], "mixed_share": row["mixed_share"]})
     table = pd.DataFrame(out)
-    table.attrs["edge_model"] = edge.to_dict()
+    # the range offset's 1-sigma (calibration.json ranging) propagated into every diameter
+    table.attrs["edge_model"] = {**edge.to_dict(), "range_offset_sigma_mm": offset_sigma}
     table.attrs["warnings"] = list(edge.warnings)
     return table
 

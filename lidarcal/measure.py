@@ -401,6 +401,25 @@ def _background_cos(grid: SweepGrid, clean: np.ndarray, hits: np.ndarray, sigma:
     return np.maximum(np.abs(np.einsum("pbi,i->pb", grid.direction, pl.normal)), 0.05)
 
 
+def _rim_foreshortening(er: np.ndarray, basis: np.ndarray, beam: np.ndarray) -> np.ndarray:
+    """How much shorter a radial step at the rim looks across the beam, per crossing (0.05..1).
+
+    ``er`` (n, 2): the rim's radial direction in the disc plane (``basis`` (2, 3) its axes);
+    ``beam`` (n, 3): unit beam directions. A step ``x`` along ``er`` moves the rim's tangent
+    line, seen in the plane perpendicular to the beam, by ``s x``: ``s`` is the part of the
+    projected radial direction perpendicular to the projected tangent (1 for a disc facing
+    the beam; ``cos(incidence)`` where the rim runs across the tilt). An offset of the spot's
+    edge response, a distance across the beam, is ``1 / s`` times longer on the disc.
+    """
+    e3 = er @ basis
+    t3 = np.column_stack([-er[:, 1], er[:, 0]]) @ basis
+    pr = e3 - np.einsum("ki,ki->k", e3, beam)[:, None] * beam
+    pt = t3 - np.einsum("ki,ki->k", t3, beam)[:, None] * beam
+    pt /= np.maximum(np.linalg.norm(pt, axis=1, keepdims=True), 1e-12)
+    s = np.linalg.norm(pr - np.einsum("ki,ki->k", pr, pt)[:, None] * pt, axis=1)
+    return np.clip(s, 0.05, 1.0)
+
+
 # --------------------------------------------------------------------------- section 3.2
 
 def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | None = None,
@@ -571,13 +590,7 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
         if offset != 0.0:
             # move hit/miss crossings in by the spot's edge offset, measured in
             # the plane perpendicular to the beam, mapped back onto the disc plane
-            e3 = er @ Bs
-            t3 = np.column_stack([-er[:, 1], er[:, 0]]) @ Bs
-            pr = e3 - np.einsum("ki,ki->k", e3, dmid)[:, None] * dmid
-            pt = t3 - np.einsum("ki,ki->k", t3, dmid)[:, None] * dmid
-            pt /= np.linalg.norm(pt, axis=1, keepdims=True)
-            s = np.linalg.norm(pr - np.einsum("ki,ki->k", pr, pt)[:, None] * pt, axis=1)
-            delta = np.where(hard, offset * rd / np.maximum(s, 0.05), 0.0)
+            delta = np.where(hard, offset * rd / _rim_foreshortening(er, Bs, dmid), 0.0)
             pts = q2 - delta[:, None] * er
         return pts, sig
 
@@ -615,6 +628,13 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
         r_std = float(np.sqrt(max(cov[2, 2], 0.0)))
     except np.linalg.LinAlgError:
         r_std = float("nan")
+    # the edge response's foreshortening on the disc plane, averaged as the fit weighs the
+    # crossings (a radial shift x_i of crossing i moves the radius by sum w_i x_i / sum w_i)
+    pts, sig = prepare(x[:2])
+    er = pts[keep] - x[:2]
+    er /= np.maximum(np.linalg.norm(er, axis=1, keepdims=True), 1e-12)
+    w = 1.0 / sig[keep] ** 2
+    stretch = float(np.sum(w / _rim_foreshortening(er, Bs, dmid[keep])) / np.sum(w))
     centre = origin + x[:2] @ Bs
     t = np.linspace(0, 2 * np.pi, 180, endpoint=False)
     circle = centre + abs(x[2]) * (np.outer(np.cos(t), Bs[0]) + np.outer(np.sin(t), Bs[1]))
@@ -629,7 +649,7 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
             "hard_crossings": int(hard.sum()), "mixed_returns": int(mixed.sum()),
             "naive_center_mm": (origin + c_naive @ Bs).tolist(),
             "edge_offset_mm": float(offset * np.nanmedian(rd)) if offset else 0.0,
-            "scan_lines": int(P), "beams": int(B)}
+            "scan_lines": int(P), "beams": int(B), "rim_stretch": stretch}
     return DiscMeasurement(
         diameter_mm=float(2 * abs(x[2])), center_mm=centre, normal=plane.normal.copy(),
         points=int(hits.sum()), naive_diameter_mm=float(2 * r_naive),

@@ -206,9 +206,10 @@ def _check_measure(argv, p, cwd, out, truth):
     assert m["edge_model"]["source"] == ("reference" if refs else "prior")
     assert m["edge_model"]["references"] == refs
     assert [r["name"] for r in m["measurements"] if r["reference"]] == refs
-    for r in m["measurements"]:  # the documented formula, D = D_half - 2 k u
+    for r in m["measurements"]:  # the documented formula, D = D_half - 2 k u s
+        assert np.isclose(r["edge_spacing_mm"], r["beam_spacing_mm"] * r["rim_stretch"])
         assert np.isclose(r["diameter_mm"], r["diameter_half_mm"]
-                          - 2 * m["edge_model"]["k"] * r["beam_spacing_mm"])
+                          - 2 * m["edge_model"]["k"] * r["edge_spacing_mm"])
 
 
 def _check_check(argv, p, cwd, out, truth):

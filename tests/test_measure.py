@@ -381,3 +381,27 @@ def test_simulator_sweeps_with_true_poses():
     # default footprint (equal reflectivities): the simulator's brighter disc adds ~+0.3 mm
     assert abs(err.mean()) < 0.6, err
     assert np.abs(err).mean() < 0.5 * np.abs(naive).mean()
+
+
+def test_rim_foreshortening_is_the_projected_ellipse():
+    """A disc tilted by ``i`` to the beam looks, across the beam, like an ellipse squeezed by
+    ``cos i`` along the beam's tilt direction; a radial rim step ``x`` at angle ``phi`` from that
+    direction moves the ellipse's edge by ``x / sqrt(cos^2 phi / cos^2 i + sin^2 phi)``."""
+    from lidarcal.geometry import plane_basis
+    from lidarcal.measure import _rim_foreshortening
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        beam = unit(rng.normal(size=3))
+        inc = np.radians(rng.uniform(0.0, 60.0))
+        tilt_dir = unit(np.cross(beam, rng.normal(size=3)))  # perpendicular to the beam
+        normal = np.cos(inc) * beam + np.sin(inc) * tilt_dir
+        B = plane_basis(normal)
+        phi = rng.uniform(0, 2 * np.pi, 50)
+        along = unit(beam - (beam @ normal) * normal)  # the beam's direction within the disc plane
+        across = np.cross(normal, along)
+        er3 = np.outer(np.cos(phi), along) + np.outer(np.sin(phi), across)
+        er = er3 @ B.T
+        s = _rim_foreshortening(er, B, np.tile(beam, (len(phi), 1)))
+        want = 1.0 / np.sqrt(np.cos(phi) ** 2 / np.cos(inc) ** 2 + np.sin(phi) ** 2)
+        np.testing.assert_allclose(s, np.clip(want, 0.05, 1.0), atol=1e-9)
