@@ -247,3 +247,37 @@ def test_fragmented_scan_segments_are_named(sim):
     m, _, _ = _fit(sim, cut)
     assert any("fragments" in w and f"at {d.n_positions} of {d.n_positions}" in w
                for w in m.warnings)
+
+
+def test_dark_extra_sigma_spans_the_unknown_edge_width():
+    """The dark extra's sigma beyond the data (``_ranging_sigmas``' edge term) is the error of
+    reading a return near a square edge with the EDGE_BLEND_MM ramp when the footprint's true
+    profile across the edge is unknown: least squares of ``offset + extra * share`` on the
+    ramp's shares, with the true shares those of a step (footprint -> 0) or of a ramp twice as
+    wide, moves the extra by +3.6 % and -8.7 % (checkerboard of 20 mm squares, uniform hits).
+    The term must cover both within 2 sigma and be no larger than the larger of the two:
+    rendered rigs (offset 8 mm, extra 6 mm, 22 positions, seeds 31-36) read 5.84-5.92 mm with
+    sigma 0.26-0.32 mm."""
+    from lidarcal.io.dataset import BoardSpec
+    from lidarcal.joint.fit import _ranging_sigmas
+    from lidarcal.joint.params import N_RIG
+    from lidarcal.ranging import EDGE_BLEND_MM
+
+    board = BoardSpec((14, 20), 20.0)
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([0.0, 0.0], [260.0, 380.0], (200_000, 2))
+    origins = np.column_stack([xy, np.full(len(xy), -1000.0)])
+    dirs = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+
+    def shares(blend_mm: float) -> np.ndarray:
+        return dark_returns(origins, dirs, np.eye(3), np.zeros(3), board, 0, blend_mm)
+
+    read = shares(EDGE_BLEND_MM)
+    X = np.column_stack([np.ones(len(read)), read])
+    extra = 6.0
+    moved = [np.linalg.lstsq(X, extra * shares(b), rcond=None)[0][1] - extra
+             for b in (1e-6, 2.0 * EDGE_BLEND_MM)]
+    assert moved[0] > 0 > moved[1]  # a step reads the extra high, a wider profile low
+    sigma = _ranging_sigmas(np.zeros((N_RIG + 2, N_RIG + 2)), None, np.array([0.0, extra]), read)[1]
+    assert max(abs(m) for m in moved) <= 2 * sigma, (moved, sigma)
+    assert sigma <= max(abs(m) for m in moved), (moved, sigma)
