@@ -50,7 +50,9 @@ LiDAR pose; measured on simulated rigs against the true poses) and is left out.
   the same rig give ``k_i = (D_half,i - D_ref,i) / (2 u_i s_i)``; ``k`` is their
   mean, ``sigma_k`` the larger of the propagated fit uncertainty and (with
   three or more references) the standard error of their spread; the sigma of
-  a disc at another range adds ``k |u s - u_ref s_ref|`` (:meth:`EdgeModel.apply`).
+  a disc at another range adds ``k |u s - u_ref s_ref|`` (:meth:`EdgeModel.apply`);
+  with three or more references the spread beyond their fits (``k_scatter``,
+  each disc's own edge response) enters every disc's sigma as ``2 u s k_scatter``.
 - **Prior** (``source: "prior"``, no reference): ``k`` uniform on an interval
   (mean the centre, ``sigma_k = width / sqrt(12)``) chosen by what the rim
   shows. The *mixed share* is the fraction of rim crossings whose outer beam
@@ -96,7 +98,8 @@ class EdgeModel:
     echo: str = "unknown"  # what the rim shows: "mixed" | "first-echo" | "unknown"
     references: tuple[str, ...] = ()
     k_references: tuple[float, ...] = ()
-    spacing_ref_mm: float | None = None  # mean beam spacing at the reference discs
+    spacing_ref_mm: float | None = None  # mean edge spacing at the reference discs
+    k_scatter: float = 0.0  # disc-to-disc scatter of k beyond the fits (>= 3 references), 1-sigma
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @staticmethod
@@ -121,11 +124,12 @@ class EdgeModel:
         s = np.hypot(fit_sigma_mm, 2.0 * spacing_mm * self.k_sigma)
         if self.spacing_ref_mm is not None:
             s = np.hypot(s, abs(self.k) * abs(spacing_mm - self.spacing_ref_mm))
+        s = np.hypot(s, 2.0 * spacing_mm * self.k_scatter)
         return float(d), float(s)
 
     def to_dict(self) -> dict:
         return {"type": "offset_beam_spacing", "source": self.source, "echo": self.echo, "k": self.k,
-                "k_sigma": self.k_sigma, "references": list(self.references),
+                "k_sigma": self.k_sigma, "k_scatter": self.k_scatter, "references": list(self.references),
                 "k_references": list(self.k_references), "beam_spacing_ref_mm": self.spacing_ref_mm,
                 "formula": "diameter_mm = diameter_half_mm - 2 k edge_spacing_mm; "
                            "edge_spacing_mm = beam_spacing_mm x rim_stretch; "
@@ -216,7 +220,11 @@ def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm:
 
     Each reference gives ``k_i = (D_half,i - D_ref,i) / (2 u_i s_i)`` (``spacing_mm``: the edge
     spacings ``u s``, :func:`edge_spacing_mm`); returns their
-    mean with ``sigma_k`` = max(propagated fit sigma, spread / sqrt(n) for n >= 3).
+    mean with ``sigma_k`` = max(propagated fit sigma, spread / sqrt(n) for n >= 3); with n >= 3
+    also ``k_scatter``, the spread beyond the fits' (``sqrt(max(spread^2 - mean(sigma_i^2), 0))``):
+    each disc's own deviation from ``k``, added to every measured disc's sigma (one or two
+    references cannot show it: between six discs of a simulated paper rig, noise averaged out,
+    ``k`` spread by 0.006 beam spacings).
     A ``k`` outside :data:`PLAUSIBLE_K` or references that disagree by more
     than 4 sigma are reported in ``warnings`` (a wrong reference diameter?).
     """
@@ -230,11 +238,15 @@ def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm:
     si = s / (2.0 * u)
     k = float(np.mean(ki))
     ks = float(np.sqrt(np.sum(si**2)) / len(ki))
+    tau = 0.0
     warns = []
     if len(ki) >= 2:
         spread = float(np.std(ki, ddof=1))
         if len(ki) >= 3:
             ks = max(ks, spread / np.sqrt(len(ki)))
+            # the discs' own edge responses differ (seen as spread beyond their fits): a
+            # measured disc carries that scatter too, not only the mean's standard error
+            tau = float(np.sqrt(max(spread**2 - np.mean(si**2), 0.0)))
         if spread > 4.0 * max(float(np.sqrt(np.mean(si**2))), 0.02):
             warns.append(f"the reference discs disagree: edge offsets {', '.join(f'{v:.3f}' for v in ki)} "
                          "beam spacings; check their reference_diameter_mm")
@@ -243,6 +255,7 @@ def fit_edge_model(names: list[str], diameter_half_mm: np.ndarray, fit_sigma_mm:
                      f"{PLAUSIBLE_K[0]:g}..{PLAUSIBLE_K[1]:g}; check their reference_diameter_mm and units")
     return EdgeModel(k, ks, "reference", references=tuple(names),
                      k_references=tuple(float(v) for v in ki), spacing_ref_mm=float(np.mean(u)),
+                     k_scatter=tau,
                      warnings=tuple(warns))
 
 

@@ -146,6 +146,26 @@ def test_range_offset_error_scales_the_diameter_as_propagated():
     assert c[:2] == pytest.approx([0.0, 0.0], abs=1e-12) and c[2] == pytest.approx(100.0 / rho)
 
 
+def test_three_references_show_the_discs_own_scatter():
+    """References whose k_i scatter by tau beyond their fits' sigma: ``k_scatter`` estimates tau
+    (its square is unbiased while tau dominates) and enters every measured disc's sigma;
+    with one reference it is 0 (unknown)."""
+    rng = np.random.default_rng(11)
+    tau, sig_k, u = 0.02, 0.005, 2.0
+    est = []
+    for _ in range(2000):
+        ki = 0.1 + tau * rng.normal(size=5) + sig_k * rng.normal(size=5)
+        em = fit_edge_model(list("abcde"), 140.0 + 2 * u * ki, np.full(5, 2 * u * sig_k), np.full(5, u),
+                            np.full(5, 140.0))
+        est.append(em.k_scatter)
+    assert np.mean(np.square(est)) == pytest.approx(tau**2, rel=0.05)
+    d, s = em.apply(100.0, 0.0, u)
+    want = np.hypot(2 * u * em.k_sigma, 2 * u * em.k_scatter)
+    assert s == pytest.approx(want) and em.to_dict()["k_scatter"] == em.k_scatter
+    one = fit_edge_model(["a"], np.array([140.4]), np.array([0.02]), np.array([u]), np.array([140.0]))
+    assert one.k_scatter == 0.0
+
+
 def test_prior_intervals():
     mixed, first, unknown = EdgeModel.prior(0.9), EdgeModel.prior(0.05), EdgeModel.prior(None)
     assert mixed.k == pytest.approx(0.15) and mixed.k_sigma == pytest.approx(0.3 / np.sqrt(12))
