@@ -20,8 +20,14 @@ import argparse
 import numpy as np
 import pandas as pd
 
-from lidarcal.disc import (EdgeModel, beam_spacing_mm, edge_footprint, fit_edge_model, mixed_share,
-                           random_sigma_mm)
+from lidarcal.disc import (
+    EdgeModel,
+    beam_spacing_mm,
+    edge_footprint,
+    fit_edge_model,
+    mixed_share,
+    random_sigma_mm,
+)
 from lidarcal.io.dataset import LidarSpec
 from lidarcal.measure import measure_disc
 from lidarcal.synthetic.config import get_rig

@@ -16,8 +16,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lidarcal.disc import (EdgeModel, edge_footprint, edge_spacing_mm, fit_edge_model, mixed_share,
-                           random_sigma_mm)
+from lidarcal.disc import (
+    EdgeModel,
+    edge_footprint,
+    edge_spacing_mm,
+    fit_edge_model,
+    mixed_share,
+    random_sigma_mm,
+)
 from lidarcal.io.dataset import DatasetError, LidarSpec
 from lidarcal.measure import measure_disc
 from lidarcal.synthetic.config import get_rig
@@ -159,7 +165,7 @@ def test_three_references_show_the_discs_own_scatter():
                             np.full(5, 140.0))
         est.append(em.k_scatter)
     assert np.mean(np.square(est)) == pytest.approx(tau**2, rel=0.05)
-    d, s = em.apply(100.0, 0.0, u)
+    _, s = em.apply(100.0, 0.0, u)
     want = np.hypot(2 * u * em.k_sigma, 2 * u * em.k_scatter)
     assert s == pytest.approx(want) and em.to_dict()["k_scatter"] == em.k_scatter
     one = fit_edge_model(["a"], np.array([140.4]), np.array([0.02]), np.array([u]), np.array([140.0]))
