@@ -219,7 +219,7 @@ def test_table2_sigma_column_and_reference_trials(tmp_path, seed):
     assert fnum(np.abs(test - 140).mean(), 2) in block
     text = src[src.index("Section 3.2"):]
     assert "fitted on the reference disc #\"trial_\u200b01\"" in text
-    assert "k = 0.075 ± 0.003 beam spacings" in text
+    assert "k = 0.075 ± 0.003 edge spacings" in text
     assert f"within 2 σ for {inside} of 5 test trials" in text
     assert "a reference disc disagrees by 5 sigma" in src[:src.index("Provenance")]  # summary
 

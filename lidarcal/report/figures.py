@@ -271,6 +271,7 @@ def _disc_trial(inp: ReportInputs) -> _DiscTrial:
     from dataclasses import replace
 
     from ..api import load_calibration
+    from ..disc import edge_footprint
     from ..io.dataset import read_sweep
     from ..measure import measure_disc
 
@@ -284,7 +285,7 @@ def _disc_trial(inp: ReportInputs) -> _DiscTrial:
     m = specs[0]
     cal = load_calibration(inp.calibration_path)
     sweep = read_sweep(m.sweep, ds.lidar)
-    r = measure_disc(sweep, cal, ds.lidar)
+    r = measure_disc(sweep, cal, ds.lidar, footprint=edge_footprint())
     row = rows.get(m.name, {})
     if row.get("diameter_mm") is not None:
         r = replace(r, diameter_mm=float(row["diameter_mm"]))

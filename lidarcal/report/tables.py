@@ -176,7 +176,8 @@ def table2(meas: dict | None, truth: dict | None = None) -> tuple[pd.DataFrame, 
 
 def edge_model_text(meas: dict | None) -> str:
     """The edge model of measurements.json in words, as typst markup (``lidarcal.disc``: the
-    detected rim lies ``k`` beam spacings outside the true rim, ``D = D_half - 2 k u``); ""
+    detected rim lies ``k`` edge spacings outside the true rim, ``D = D_half - 2 k u s``, the edge
+    spacing ``u s`` being the beam spacing times the rim stretch); ""
     for older files without ``edge_model``."""
     from .markup import esc
 
@@ -194,13 +195,15 @@ def edge_model_text(meas: dict | None) -> str:
         out = f"the prior, no reference disc (rim echo type {esc(em.get('echo', '?'))})"
     else:
         out = f"source {esc(src)}"
-    out += (f": the detected rim lies k = {fnum(k, 3)} \u00b1 {fnum(ks, 3)} beam spacings (1 sigma) "
+    out += (f": the detected rim lies k = {fnum(k, 3)} \u00b1 {fnum(ks, 3)} edge spacings (1 sigma) "
             f"outside the true rim (model {esc(em.get('type', '?'))})")
     rows = (meas or {}).get("measurements", [])
-    u = [float(r["beam_spacing_mm"]) for r in rows if r.get("beam_spacing_mm") is not None]
+    u = [float(r.get("edge_spacing_mm", r.get("beam_spacing_mm")))
+         for r in rows if r.get("edge_spacing_mm", r.get("beam_spacing_mm")) is not None]
     off = [float(r["edge_offset_mm"]) for r in rows if r.get("edge_offset_mm") is not None]
     if u:
-        out += f"; beam spacing at the discs {fnum(min(u), 2)} to {fnum(max(u), 2)} mm"
+        out += (f"; edge spacing (beam spacing x rim stretch) at the discs {fnum(min(u), 2)} to "
+                f"{fnum(max(u), 2)} mm")
     if off:
         out += f", rim offset {fnum(min(off), 2)} to {fnum(max(off), 2)} mm"
     mix = [float(r["mixed_share"]) for r in rows if r.get("mixed_share") is not None]
