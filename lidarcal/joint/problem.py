@@ -141,18 +141,8 @@ class _Problem:
 
     def pose_derivatives(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """R (N, 3, 3), T (N, 3) at the rig parameters ``x[:10]`` and d[R_x, R_y, R_z, T] /
-        d rig (N, 12, 10): the pose columns at every position, by central differences."""
-        R, T = _poses(*_rig(x, self.base), self.t)
-        h = _STEPS[:N_RIG]
-        G = np.zeros((len(self.t), 12, N_RIG))
-        for j in range(N_RIG):
-            dx = np.zeros(N_RIG)
-            dx[j] = h[j]
-            Rp, Tp = _poses(*_rig(x[:N_RIG] + dx, self.base), self.t)
-            Rm, Tm = _poses(*_rig(x[:N_RIG] - dx, self.base), self.t)
-            G[:, :, j] = (np.concatenate([Rp.transpose(0, 2, 1).reshape(-1, 9), Tp], 1)
-                          - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
-        return R, T, G
+        d rig (N, 12, 10): the pose columns at every position (:func:`pose_jacobian`)."""
+        return pose_jacobian(x[:N_RIG], self.base, self.t)
 
     def jacobian(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
         """Jacobian of :meth:`normalised` wrt the full parameters (rig 10 + boards 12).
@@ -304,3 +294,62 @@ def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
         if b > a:
             out[a:b] = np.einsum("mi,ij->mj", dr[a:b], G[i])
     return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` of vectors ``v`` (..., 3): (..., 3, 3)."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def pose_jacobian(x: np.ndarray, base: _Base, t: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rigid model's poses at angles ``t`` and their derivatives wrt the rig parameters
+    (analytic): R (N, 3, 3), T (N, 3), G (N, 12, 10) with rows ``[R_x, R_y, R_z, T]``.
+
+    ``R = Q(t, k) R_ref``, ``T = a + Q (T_ref - a)`` with Rodrigues'
+    ``Q = cos t I + sin t [k]x + (1 - cos t) k k^T`` (:func:`lidarcal.joint.params._poses`):
+
+    * direction steps ``x[0:2]``: ``k = unit(k0 + x B)``, ``dk = (I - k k^T) B_i / |k0 + x B|``,
+      ``dQ = sin t [dk]x + (1 - cos t)(dk k^T + k dk^T)``; ``dR = dQ R_ref``,
+      ``dT = dQ (T_ref - a)``;
+    * axis point steps ``x[2:4]``: ``dT = (I - Q) B_i``;
+    * reference rotation vector ``w = x[4:7]`` (``R_ref = Exp(w) R0``):
+      ``dExp(w)/dw_j = [J_l(w) e_j]x Exp(w)`` with the left Jacobian of SO(3)
+      ``J_l = I + (1 - cos th)/th^2 [w]x + (th - sin th)/th^3 [w]x^2``;
+      ``dR = Q [J_l e_j]x R_ref``;
+    * reference centre steps ``x[7:10]``: ``dT = Q e_j``.
+    """
+    x = np.asarray(x, float)
+    k, a, R_ref, T_ref = _rig(x, base)
+    R, T = _poses(k, a, R_ref, T_ref, t)
+    n = len(t)
+    c, s = np.cos(t)[:, None, None], np.sin(t)[:, None, None]
+    kx = _skew(k)
+    Q = c * np.eye(3) + s * kx + (1 - c) * np.outer(k, k)
+    dR = np.zeros((n, N_RIG, 3, 3))
+    dT = np.zeros((n, N_RIG, 3))
+    # axis direction
+    k_raw = base.k + x[0:2] @ base.B
+    dk = (base.B - np.outer(base.B @ k, k)) / np.linalg.norm(k_raw)  # (2, 3)
+    dQ = (s[:, None] * _skew(dk)[None]
+          + (1 - c)[:, None] * (dk[:, :, None] * k[None, None, :] + k[None, :, None] * dk[:, None, :])[None])
+    dR[:, 0:2] = dQ @ R_ref
+    dT[:, 0:2] = dQ @ (T_ref - a)
+    # axis point
+    dT[:, 2:4] = np.einsum("ij,nkj->nik", base.B, np.eye(3) - Q)
+    # reference rotation
+    w = x[4:7]
+    th = float(np.linalg.norm(w))
+    W = _skew(w)
+    if th < 1e-6:
+        Jl = np.eye(3) + 0.5 * W + W @ W / 6.0
+    else:
+        Jl = np.eye(3) + (1 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
+    dR[:, 4:7] = Q[:, None] @ (_skew(Jl.T) @ R_ref)[None]
+    # reference centre
+    dT[:, 7:10] = Q.transpose(0, 2, 1)[:, :, :]
+    G = np.concatenate([dR.transpose(0, 1, 3, 2).reshape(n, N_RIG, 9), dT], 2).transpose(0, 2, 1)
+    return R, T, np.ascontiguousarray(G)
