@@ -30,7 +30,7 @@ import numpy as np
 
 from .noise import _Groups
 from .params import N_RIG, _poses, _rig
-from .problem import _Problem
+from .problem import _Problem, _stripe_points
 from .solver import LMResult, _irls_weights, _lm_scaling, _lm_step, _rho
 
 
@@ -53,9 +53,7 @@ class _MomentProblem:
         bR, bT = prob.base.board_R, prob.base.board_T
         self.nb = bR[:, :, 2]
         self.db = np.einsum("ij,ij->i", self.nb, bT)
-        b = d.stripe_board
-        ray = d.stripe_rays
-        P = ray * (self.db[b] / np.einsum("ij,ij->i", ray, self.nb[b]))[:, None]
+        P = _stripe_points(d, bR, bT)["P"]
         s = prob.scale_px[:, None]
         hp = np.column_stack([s * P, s]) if len(P) else np.zeros((0, 4))
         self.hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]

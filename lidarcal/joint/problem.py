@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import weakref
+
 import cv2
 import numpy as np
 
@@ -125,9 +127,8 @@ class _Problem:
         X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
         r_scan = np.einsum("ij,ij->i", X, n[b]) - dd[b]
         # stripe centres back-projected onto their board (eq. 5), against the laser plane
-        p, b = d.stripe_pos, d.stripe_board
-        ray = d.stripe_rays
-        P = ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]
+        p = d.stripe_pos
+        P = _stripe_points(d, bR, bT, cache=len(x) <= N_RIG)["P"]
         z = R[p, :, 2]
         r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.scale_px
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
@@ -260,23 +261,52 @@ class _Problem:
         k, a, R_ref, T_ref = _rig(x, self.base)
         R, _ = _poses(k, a, R_ref, T_ref, self.t)
         bR, bT = _boards(x, self.base)
-        n = bR[:, :, 2][d.stripe_board]
-        dd = np.einsum("ij,ij->i", bR[:, :, 2], bT)[d.stripe_board]
-        ray = d.stripe_rays
-        P = ray * (dd / np.einsum("ij,ij->i", ray, n))[:, None]
-        zL = R[d.stripe_pos, :, 2]
+        ent = _stripe_points(d, bR, bT, jacobian=True, cache=len(x) <= N_RIG)
+        # per (position, board): the stripe's direction on the board and the direction
+        # perpendicular to it in the board
+        nb = bR[:, :, 2]
+        n = nb[np.tile([0, 1], len(self.t))]
+        zL = R[np.repeat(np.arange(len(self.t)), 2), :, 2]
         line = unit(np.cross(n, zL))  # stripe direction on the board
         u = unit(np.cross(n, line))  # in the board, perpendicular to the stripe
+        g = self.stripe.gid
+        Jt = ent["Jt"]
+        pu = np.einsum("mij,mj->mi", Jt, u[g])
+        pl = unit(np.einsum("mij,mj->mi", Jt, line[g]))
+        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
+        du = np.abs(np.einsum("ij,ij->i", zL, u))[g]  # mm of laser offset per mm along u
+        self.scale_px = perp / np.maximum(du, 1e-9)
+
+
+_STRIPE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bool = False,
+                   cache: bool = True) -> dict:
+    """Stripe centres back-projected onto their boards (eq. 5), ``P`` (S, 3), and with
+    ``jacobian`` d pixel / d P through the lens model, ``Jt`` (S, 2, 3).
+
+    Both depend on the board planes only: with the planes held (``cache``) they are
+    computed once per :class:`JointData` and board poses.
+    """
+    key = (bR.tobytes(), bT.tobytes())
+    per = _STRIPE_CACHE.setdefault(data, {}) if cache else {}
+    ent = per.get(key)
+    if ent is None:
+        if len(per) >= 4:
+            per.clear()
+        b, ray = data.stripe_board, data.stripe_rays
+        n = bR[:, :, 2]
+        dd = np.einsum("ij,ij->i", n, bT)
+        ent = per[key] = {"P": ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]}
+    if jacobian and "Jt" not in ent:
         # d pixel / d point through the lens model: cv2.projectPoints' Jacobian wrt the
         # translation (columns 3-5) is exactly that with a zero rotation
-        _, Jt = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                  np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float))
-        Jt = Jt[:, 3:6].reshape(-1, 2, 3)
-        pu = np.einsum("mij,mj->mi", Jt, u)
-        pl = unit(np.einsum("mij,mj->mi", Jt, line))
-        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
-        du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
-        self.scale_px = perp / np.maximum(du, 1e-9)
+        _, Jt = cv2.projectPoints(ent["P"].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                  np.asarray(data.camera.K, float),
+                                  np.asarray(data.camera.dist, float))
+        ent["Jt"] = Jt[:, 3:6].reshape(-1, 2, 3)
+    return ent
 
 
 def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
