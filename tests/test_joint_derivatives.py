@@ -36,3 +36,49 @@ def test_pose_jacobian_equals_central_differences(seed):
                - _columns(*_poses(*_rig(x - dx, base), t))) / (2 * h)
         # central differences: truncation ~h^2 |f'''|, rounding ~1e-16 |f| / h (|T| ~ 1e3 mm)
         assert np.allclose(G[:, :, j], num, rtol=1e-6, atol=1e-6), j
+
+
+@pytest.fixture(scope="module")
+def noisy_problem():
+    """A held-planes joint problem of a small noisy simulated rig, set up as fit_joint does
+    (dark returns, stripe scales, correlated noise model, rejection)."""
+    from lidarcal.joint import joint_data
+    from lidarcal.joint.fit import _start_bases
+    from lidarcal.joint.params import N_BOARD
+    from lidarcal.joint.problem import _Problem
+    from lidarcal.ranging import RangingPrior
+    from lidarcal.study import StudySetting, simulate_rig
+
+    res = simulate_rig(21, StudySetting(n_positions=6)).result
+    data = joint_data(res, "pnp")
+    psi_ref = float(np.mean(data.psi_deg))
+    base = _start_bases([res.rigid_model], data, psi_ref)[0]
+    pr = RangingPrior()
+    prior = (np.array([pr.offset_mm, pr.dark_extra_mm]),
+             np.array([pr.offset_sigma_mm, pr.dark_extra_sigma_mm]))
+    prob = _Problem(data, base, psi_ref, 2, prior)
+    full = np.zeros(N_RIG + 2 * N_BOARD + 2)
+    prob.classify(full)
+    prob.set_stripe_scale(full)
+    prob.estimate_noise(np.zeros(N_RIG + 2), True)
+    prob.reject(full)
+    prob.corner_floor_px = 0.1
+    return prob
+
+
+def test_moment_covariance_equals_row_covariance(noisy_problem):
+    """The covariance from the group moments (rig, ranging, consider term, s^2, the
+    cluster-robust sandwich) is the row-by-row one, to rounding."""
+    from lidarcal.joint.moments import moments_covariance
+    from lidarcal.joint.solver import _covariance_rows
+
+    prob = noisy_problem
+    C0, null0, s20 = _covariance_rows(prob, False, "soft_l1", 2.5)
+    sw0 = prob.sandwich
+    C1, null1, s21 = moments_covariance(prob, "soft_l1", 2.5)
+    sig = np.sqrt(np.diag(C0))
+    assert np.all(np.isfinite(sig)) and null0.shape == null1.shape
+    assert np.allclose(C1 / np.outer(sig, sig), C0 / np.outer(sig, sig), rtol=0, atol=1e-8)
+    assert s21 == pytest.approx(s20, rel=1e-10)
+    ss = np.sqrt(np.diag(sw0))
+    assert np.allclose(prob.sandwich / np.outer(ss, ss), sw0 / np.outer(ss, ss), rtol=0, atol=1e-8)

@@ -161,19 +161,7 @@ class _Problem:
         bR, bT = _boards(x, self.base)
         nb = bR[:, :, 2]
         db = np.einsum("ij,ij->i", nb, bT)
-        # d (normal, d) of both boards / d board parameters: (2, 4, 6)
-        Gb = np.zeros((2, 4, N_BOARD))
-        if n_main > N_RIG:
-            for j in range(N_BOARD):
-                for b in range(2):
-                    dx = np.zeros(n_main)
-                    i = N_RIG + b * N_BOARD + j
-                    dx[i] = _STEPS[i]
-                    Rp, Tp = _boards(x + dx, self.base)
-                    Rm, Tm = _boards(x - dx, self.base)
-                    fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
-                    fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
-                    Gb[b, :, j] = (fp - fm) / (2 * _STEPS[i])
+        Gb = self.plane_derivatives(x) if n_main > N_RIG else np.zeros((2, 4, N_BOARD))
         blocks = []
         # scan: r = n_b . (R_x x + R_y y + T) - d_b, (x, y) = (rho - offset - extra dark) u
         p, b = d.scan_pos, d.scan_board
@@ -222,15 +210,41 @@ class _Problem:
             for blk in blocks:
                 blk[:, n_main + j] = 0.0
         if use_corners:
-            m = len(self.corner_residuals(bR, bT))
-            Jc = np.zeros((m, n_par))
-            for i in range(N_RIG, n_main):
-                dx = np.zeros(n_main)
-                dx[i] = _STEPS[i]
-                Jc[:, i] = (self.corner_residuals(*_boards(x + dx, self.base))
-                            - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
+            Jc = np.zeros((len(self.corner_residuals(bR, bT)), n_par))
+            if n_main > N_RIG:
+                Jc[:, N_RIG:n_main] = self.corner_jacobian(x)
             blocks.append(Jc / self.sigma_corner)
         return np.vstack(blocks)
+
+    def plane_derivatives(self, x: np.ndarray) -> np.ndarray:
+        """d (normal, d) of both boards / d board parameters ``x[10:22]`` (2, 4, 6), central
+        differences."""
+        x = np.asarray(x[:N_RIG + 2 * N_BOARD], float)
+        Gb = np.zeros((2, 4, N_BOARD))
+        for j in range(N_BOARD):
+            for b in range(2):
+                dx = np.zeros(len(x))
+                i = N_RIG + b * N_BOARD + j
+                dx[i] = _STEPS[i]
+                Rp, Tp = _boards(x + dx, self.base)
+                Rm, Tm = _boards(x - dx, self.base)
+                fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
+                fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
+                Gb[b, :, j] = (fp - fm) / (2 * _STEPS[i])
+        return Gb
+
+    def corner_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """Corner reprojection residuals (px) / d board parameters ``x[10:22]`` (m, 12),
+        central differences."""
+        x = np.asarray(x[:N_RIG + 2 * N_BOARD], float)
+        m = len(self.corner_residuals(*_boards(x, self.base)))
+        Jc = np.zeros((m, 2 * N_BOARD))
+        for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+            dx = np.zeros(len(x))
+            dx[i] = _STEPS[i]
+            Jc[:, i - N_RIG] = (self.corner_residuals(*_boards(x + dx, self.base))
+                                - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
+        return Jc
 
     def corner_residuals(self, bR: np.ndarray, bT: np.ndarray) -> np.ndarray:
         d = self.data

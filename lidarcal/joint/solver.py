@@ -123,7 +123,19 @@ def _covariance(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
                 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Covariance (10 + n_ranging, 10 + n_ranging) of the rig and ranging parameters, the
     unobservable directions (10 + n_ranging, q), s^2. The rig block is marginal over the
-    ranging terms: estimating them shows as larger rig sigmas."""
+    ranging terms: estimating them shows as larger rig sigmas. Planes held: from the
+    group moments (:func:`lidarcal.joint.moments.moments_covariance`)."""
+    if not fit_planes and prob.scan._sorted and prob.stripe._sorted:
+        from .moments import moments_covariance  # moments builds on this module
+
+        return moments_covariance(prob, loss, f_scale)
+    return _covariance_rows(prob, fit_planes, loss, f_scale)
+
+
+def _covariance_rows(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`_covariance` from the row-by-row Jacobian (with ``fit_planes``, or rows not
+    grouped; :func:`lidarcal.joint.moments.moments_covariance` is the same, faster)."""
     r, J = _jacobian(prob)
     n_main = len(r) - len(prob.corner_residuals(prob.base.board_R, prob.base.board_T))
     w = _irls_weights(r / f_scale, loss)
