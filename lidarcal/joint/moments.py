@@ -143,20 +143,43 @@ class _MomentProblem:
 
     def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
-        return (np.einsum("mk,mk->m", self.hs, cs[self.gs]),
-                np.einsum("mk,mk->m", self.hp, cp[self.gp]))
+        return (np.einsum("mk,mk->m", self.hs, np.take(cs, self.gs, axis=0)),
+                np.einsum("mk,mk->m", self.hp, np.take(cp, self.gp, axis=0)))
 
     def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4)."""
-        Qs = np.zeros((self.n_groups, 7, 7))
-        Qp = np.zeros((self.n_groups, 4, 4))
-        for Q, h, W, cuts in ((Qs, self.hs, Ws, self.cuts_s), (Qp, self.hp, Wp, self.cuts_p)):
-            hw = h * W[:, None]
-            for g in range(self.n_groups):  # rows sorted by group: one small product each
-                a, b = cuts[g], cuts[g + 1]
-                if b > a:
-                    Q[g] = hw[a:b].T @ h[a:b]
-        return Qs, Qp
+        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
+
+        One weighted pass over the products ``h~_i h~_j`` (i <= j, computed once per
+        noise state) and a sum per group."""
+        out = []
+        for h, W, cuts in ((self.hs, Ws, self.cuts_s), (self.hp, Wp, self.cuts_p)):
+            k = h.shape[1]
+            Q = np.zeros((self.n_groups, k, k))
+            iu = np.triu_indices(k)
+            nonempty = np.flatnonzero(np.diff(cuts) > 0)
+            if len(nonempty):
+                F = _products(h)
+                Q[nonempty[:, None], iu[0], iu[1]] = np.add.reduceat(F * W[:, None],
+                                                                     cuts[nonempty], axis=0)
+                Q[:, iu[1], iu[0]] = Q[:, iu[0], iu[1]]
+            out.append(Q)
+        return out[0], out[1]
+
+
+_PRODUCTS: dict = {}
+
+
+def _products(h: np.ndarray) -> np.ndarray:
+    """``h_i h_j`` (i <= j) of every row (M, k (k + 1) / 2), kept for the last two ``h``."""
+    hit = _PRODUCTS.get(id(h))
+    if hit is not None and hit[0] is h:
+        return hit[1]
+    iu = np.triu_indices(h.shape[1])
+    F = h[:, iu[0]] * h[:, iu[1]]
+    if len(_PRODUCTS) >= 2:
+        _PRODUCTS.clear()
+    _PRODUCTS[id(h)] = (h, F)
+    return F
 
 
 def moments_usable(prob: _Problem, use_corners: bool) -> bool:
