@@ -82,3 +82,26 @@ def test_moment_covariance_equals_row_covariance(noisy_problem):
     assert s21 == pytest.approx(s20, rel=1e-10)
     ss = np.sqrt(np.diag(sw0))
     assert np.allclose(prob.sandwich / np.outer(ss, ss), sw0 / np.outer(ss, ss), rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_start_step_reproduces_the_other_start(seed):
+    """A second start expressed as a step in the first start's parametrisation gives the
+    same pose function (axis line, reference pose) at every angle."""
+    from lidarcal.joint.problem import start_step
+
+    rng = np.random.default_rng(seed)
+    k0 = rng.normal(size=3)
+    k1 = k0 / np.linalg.norm(k0) + rng.normal(size=3) * 0.05  # a few degrees apart
+    z = (np.zeros((2, 3, 3)), np.zeros((2, 3)))
+    b0 = _Base.make(k0, rng.normal(size=3) * 100, Rotation.random(random_state=seed).as_matrix(),
+                    rng.normal(size=3) * 300, *z)
+    b1 = _Base.make(k1, b0.a + rng.normal(size=3) * 5,
+                    Rotation.from_rotvec(rng.normal(size=3) * 0.02).as_matrix() @ b0.R,
+                    b0.T + rng.normal(size=3) * 2, *z)
+    t = rng.uniform(-1.0, 1.0, 9)
+    R0, T0 = _poses(*_rig(start_step(b0, b1), b0), t)
+    R1, T1 = _poses(b1.k, b1.a, b1.R, b1.T, t)
+    assert np.allclose(R0, R1, atol=1e-12) and np.allclose(T0, T1, atol=1e-9)
+    flipped = _Base.make(-k0, b0.a, b0.R, b0.T, *z)
+    assert start_step(b0, flipped) is None

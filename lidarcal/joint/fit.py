@@ -25,7 +25,7 @@ from .params import (
     _boards,
     _rig,
 )
-from .problem import _Problem
+from .problem import _Problem, start_step
 from .solver import _covariance, _rho, irls_lm
 
 
@@ -93,14 +93,22 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
 
     sols = []
     for base in bases:
-        prob = _Problem(data, base, psi_ref, n_rng, prior_arrays)
-        prob.classify(_full(x0))
-        prob.set_stripe_scale(_full(x0))
-        prob.estimate_noise(x0, correlated=False)
-        sols.append((prob, solve(prob, x0, 1e-8)))  # to pick a start; the passes below finish
+        # later starts as steps in the first start's problem (same noise model and scales)
+        step = start_step(sols[0][0].base, base) if sols else None
+        if step is None:
+            prob, xs = _Problem(data, base, psi_ref, n_rng, prior_arrays), x0
+            prob.classify(_full(x0))
+            prob.set_stripe_scale(_full(x0))
+            prob.estimate_noise(x0, correlated=False)
+        else:
+            prob, xs = sols[0][0], np.concatenate([step, x0[N_RIG:]])
+        sols.append((prob, solve(prob, xs, 1e-8)))  # to pick a start; the passes below finish
     # costs are comparable only with the same noise model: rescore with the first start's
     scores = []
     for prob, sol in sols:
+        if prob is sols[0][0]:  # the solver's robust cost (scipy's definition)
+            scores.append(2 * sol.cost / f_scale**2)
+            continue
         prob.scan, prob.stripe = sols[0][0].scan, sols[0][0].stripe
         prob.sigma_corner = sols[0][0].sigma_corner
         r = prob.normalised(_full(sol.x), use_corners)

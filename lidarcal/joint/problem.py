@@ -6,6 +6,7 @@ import weakref
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..geometry import unit
 from .data import JointData
@@ -397,3 +398,21 @@ def pose_jacobian(x: np.ndarray, base: _Base, t: np.ndarray
     dT[:, 7:10] = Q.transpose(0, 2, 1)[:, :, :]
     G = np.concatenate([dR.transpose(0, 1, 3, 2).reshape(n, N_RIG, 9), dT], 2).transpose(0, 2, 1)
     return R, T, np.ascontiguousarray(G)
+
+
+def start_step(base: _Base, start: _Base) -> np.ndarray | None:
+    """Rig parameters (10) at which ``base``'s parametrisation gives the rig of ``start``
+    (another start of the fit), or None when its axis direction is more than 60 deg off
+    (``k = unit(k0 + x B)`` cannot reach it well).
+
+    Direction: ``k0 + x B`` parallel to ``k``; axis point: where ``start``'s axis meets the
+    plane through ``base.a`` perpendicular to ``k0``; rotation vector of ``R R0^T``; centre
+    step ``T - T0``.
+    """
+    c = float(start.k @ base.k)
+    if c < 0.5:
+        return None
+    foot = start.a + start.k * float((base.a - start.a) @ base.k) / c
+    w = Rotation.from_matrix(start.R @ base.R.T).as_rotvec()
+    return np.concatenate([(start.k / c) @ base.B.T, (foot - base.a) @ base.B.T, w,
+                           start.T - base.T])
