@@ -105,3 +105,19 @@ def test_start_step_reproduces_the_other_start(seed):
     assert np.allclose(R0, R1, atol=1e-12) and np.allclose(T0, T1, atol=1e-9)
     flipped = _Base.make(-k0, b0.a, b0.R, b0.T, *z)
     assert start_step(b0, flipped) is None
+
+
+def test_angle_steps_from_moments_equal_central_differences(noisy_problem, monkeypatch):
+    """Each position's angle step and its variance (the jitter test): the analytic moment
+    form equals one central difference of the angles on the rows."""
+    from lidarcal.joint import jitter
+
+    prob = noisy_problem
+    x = np.zeros(N_RIG + prob.n_ranging)
+    x[4:7] = [2e-4, -1e-4, 3e-4]  # off the optimum: steps and weights away from trivial
+    step, var = jitter._angle_steps(prob, x, "soft_l1", 2.5)
+    monkeypatch.setattr(jitter, "moments_usable", lambda *a: False)
+    step0, var0 = jitter._angle_steps(prob, x, "soft_l1", 2.5)
+    assert np.all(np.isfinite(var0)) and np.any(np.abs(step0) > 3 * np.sqrt(var0))
+    assert np.allclose(step, step0, rtol=0, atol=1e-6 * np.sqrt(var0).min())
+    assert np.allclose(var, var0, rtol=1e-6)

@@ -141,6 +141,34 @@ class _MomentProblem:
         Jp[:, 3, :N_RIG] = -(np.einsum("gi,gij->gj", Tg, dz) + np.einsum("gi,gij->gj", z, Gg[:, 9:12]))
         return cs, Js, cp, Jp
 
+    def angle_coefficients(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per group ``c`` and ``dc/dt`` wrt the group's own turntable angle: scans (G, 7) x 2,
+        stripes (G, 4) x 2. ``dR/dt = [k]x R`` and ``dT/dt = [k]x (T - a)`` (the rigid model,
+        :func:`lidarcal.joint.params._poses`)."""
+        prob = self.prob
+        xr, rv = prob.split(x)
+        k, a_pt, R_ref, T_ref = _rig(xr, prob.base)
+        R, T = _poses(k, a_pt, R_ref, T_ref, prob.t)
+        n_pos = len(prob.t)
+        pos = np.repeat(np.arange(n_pos), 2)
+        brd = np.tile([0, 1], n_pos)
+        n = self.nb[brd]
+        Rg, Tg = R[pos], T[pos]
+        dRg = np.cross(k, Rg.transpose(0, 2, 1)).transpose(0, 2, 1)  # [k]x R, column by column
+        dTg = np.cross(k, Tg - a_pt)
+        off, ex = rv[0], rv[1]
+
+        def scan(Rc, Tc, shift):
+            a = np.einsum("gi,gi->g", n, Rc[:, :, 0])
+            b = np.einsum("gi,gi->g", n, Rc[:, :, 1])
+            gam = np.einsum("gi,gi->g", n, Tc) - shift
+            return np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam])
+
+        z, dz = Rg[:, :, 2], dRg[:, :, 2]
+        cp = np.column_stack([z, -np.einsum("gi,gi->g", Tg, z)])
+        dcp = np.column_stack([dz, -np.einsum("gi,gi->g", dTg, z) - np.einsum("gi,gi->g", Tg, dz)])
+        return scan(Rg, Tg, self.db[brd]), scan(dRg, dTg, 0.0), cp, dcp
+
     def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
         return (np.einsum("mk,mk->m", self.hs, np.take(cs, self.gs, axis=0)),
