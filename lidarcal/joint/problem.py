@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import weakref
 
 import cv2
@@ -48,9 +49,7 @@ class _Problem:
                      else np.asarray(data.scan_dark, float))
         self.t = np.radians(data.psi_deg - psi_ref_deg)
         self.scale_px = np.ones(len(data.stripe_px))
-        n = data.n_positions
-        self.scan = _Groups(data.scan_pos, data.scan_board, data.scan_xy, n)
-        self.stripe = _Groups(data.stripe_pos, data.stripe_board, data.stripe_px, n)
+        self.scan, self.stripe = _groups(data)
         self.sigma_corner = 1.0
         self.corner_floor_px = 0.0
         self.sandwich: np.ndarray | None = None  # cluster-robust covariance (solver._covariance)
@@ -294,6 +293,20 @@ class _Problem:
 
 
 _STRIPE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_GROUPS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _groups(data: JointData) -> tuple[_Groups, _Groups]:
+    """Fresh noise models of the scan and the stripe residuals (:class:`_Groups`, white unit
+    noise, all kept): shallow copies of ones built once per :class:`JointData` (a
+    :class:`_Groups` replaces its arrays, never changes them in place)."""
+    proto = _GROUPS_CACHE.get(data)
+    if proto is None:
+        n = data.n_positions
+        proto = _GROUPS_CACHE[data] = (
+            _Groups(data.scan_pos, data.scan_board, data.scan_xy, n),
+            _Groups(data.stripe_pos, data.stripe_board, data.stripe_px, n))
+    return copy.copy(proto[0]), copy.copy(proto[1])
 
 
 def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bool = False,
