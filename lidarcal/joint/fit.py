@@ -28,6 +28,8 @@ from .params import (
 from .problem import _Problem, start_step
 from .solver import _covariance, _rho, irls_lm
 
+START_TIE = 1e-6  # relative robust-cost difference below which two starts tie
+
 
 def _start_bases(result_or_models, data: JointData, psi_ref: float) -> list[_Base]:
     bases = []
@@ -113,7 +115,11 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         prob.sigma_corner = sols[0][0].sigma_corner
         r = prob.normalised(_full(sol.x), use_corners)
         scores.append(np.sum(_rho(r / f_scale, loss)))
+    # the first start unless another is lower by more than the start solves' tolerance
+    # (solved to 1e-8: starts that reach the same optimum tie)
     best = int(np.argmin(scores))
+    if scores[0] <= scores[best] + START_TIE * abs(scores[0]):
+        best = 0
     prob, sol = sols[best]
     x = sol.x
 
