@@ -81,9 +81,9 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             return x
         return np.concatenate([x[:N_RIG], np.zeros(2 * N_BOARD), x[N_RIG:]])
 
-    def solve(prob: _Problem, x: np.ndarray, tol: float = 1e-12):
+    def solve(prob: _Problem, x: np.ndarray, tol: float = 1e-12, near=None):
         if solver == "moments" and moments_usable(prob, use_corners):
-            return irls_moments(prob, x, loss, f_scale, tol=tol)
+            return irls_moments(prob, x, loss, f_scale, tol=tol, near=near)
         if solver == "scipy":
             from scipy.optimize import least_squares
 
@@ -104,7 +104,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             prob.estimate_noise(x0, correlated=False)
         else:
             prob, xs = sols[0][0], np.concatenate([step, x0[N_RIG:]])
-        sols.append((prob, solve(prob, xs, 1e-8)))  # to pick a start; the passes below finish
+        near = sols[0][1] if sols and prob is sols[0][0] else None  # same basin: stop, tie
+        sols.append((prob, solve(prob, xs, 1e-8, near)))  # to pick a start; the passes below finish
     # costs are comparable only with the same noise model: rescore with the first start's
     scores = []
     for prob, sol in sols:

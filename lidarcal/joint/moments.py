@@ -217,18 +217,25 @@ def moments_usable(prob: _Problem, use_corners: bool) -> bool:
 
 def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.0,
                  max_outer: int = 50, max_inner: int = 30, tol: float = 1e-12,
-                 inner_tol: float = 1e-12) -> LMResult:
+                 inner_tol: float = 1e-12, near: LMResult | None = None) -> LMResult:
     """Robust fit of ``prob`` (planes held) by IRLS on per-group moments (module docstring).
 
     Outer loop: residuals at ``x``, robust weights ``W = rho'``, group moments ``Q``.
     Inner loop: Levenberg-Marquardt on ``sum c^T Q c`` (+ the ranging prior, weighted
     alike), exact for the held weights. Stops when an outer pass moves the robust
     cost by less than ``tol`` (relative). Returns the robust cost at the end
-    (scipy's definition, as :func:`lidarcal.joint.solver.irls_lm`).
+    (scipy's definition, as :func:`lidarcal.joint.solver.irls_lm`) and the Gauss-Newton
+    information ``sum J^T Q J`` of the last inner step.
+
+    ``near`` (another start's result on the same problem, with its information): stop
+    (status 2) once an outer pass ends within one sigma of it, ``dx^T I dx <= 1``, at a
+    robust cost no lower than its: the solution is in the same basin of the cost and
+    converges to the same optimum (the starts tie).
     """
     mp = _MomentProblem(prob)
     x = np.asarray(x0, dtype=float).copy()
     nfev, status = 0, 0
+    H = None
 
     def robust_cost(x: np.ndarray):
         cs, Js, cp, Jp = mp.coefficients(x, derivatives=False)
@@ -299,7 +306,12 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         if done:
             status = 1
             break
-    return LMResult(x, cost, nfev, status)
+        if near is not None and near.information is not None and cost >= near.cost:
+            dx = x - near.x
+            if float(dx @ near.information @ dx) <= 1.0:
+                status = 2
+                break
+    return LMResult(x, cost, nfev, status, H)
 
 
 def _group_cross(A: np.ndarray, B: np.ndarray, W: np.ndarray, cuts: np.ndarray) -> np.ndarray:

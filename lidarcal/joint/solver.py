@@ -17,7 +17,8 @@ class LMResult:
     x: np.ndarray
     cost: float
     nfev: int
-    status: int  # 1 converged, 0 iteration limit, -1 no decrease possible
+    status: int  # 1 converged, 0 iteration limit, -1 no decrease possible, 2 joined ``near``
+    information: np.ndarray | None = None  # Gauss-Newton information at x (moment solver)
 
 
 def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.0,
