@@ -277,8 +277,13 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
             D = _lm_scaling(H)
             while True:
                 step = _lm_step(H, g, lam, D)
-                if abs(float(g @ step)) <= inner_tol * max(q, 1e-300):
-                    step = None  # converged: the predicted decrease is below rounding
+                pred = abs(float(g @ step))
+                if it == 0:
+                    first = pred
+                # converged: the predicted decrease is below rounding, or a millionth of this
+                # pass's first (the weights change before that matters)
+                if pred <= max(inner_tol * max(q, 1e-300), 1e-6 * first):
+                    step = None
                     break
                 c2 = mp.coefficients(xi + step, derivatives=False)
                 q2 = quad(c2[0], c2[2], prob.prior_residuals(xi + step))
