@@ -33,7 +33,7 @@ import numpy as np
 from .noise import _Groups
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
-from .solver import LMResult, _irls_weights, _lm_scaling, _lm_step, _rho
+from .solver import LMResult, _irls_weights, _lm_scaling, _lm_step, _rho_and_weights
 
 
 def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
@@ -238,13 +238,18 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
     H = None
 
     def robust_cost(x: np.ndarray):
-        cs, Js, cp, Jp = mp.coefficients(x, derivatives=False)
+        """Robust cost at ``x`` and the IRLS weights of its residuals (scan, stripe, prior)."""
+        cs, _, cp, _ = mp.coefficients(x, derivatives=False)
         rs, rp = mp.residuals(cs, cp)
-        rr = prob.prior_residuals(x)
-        r = np.concatenate([rs, rp, rr])
-        return 0.5 * f_scale**2 * float(np.sum(_rho(r / f_scale, loss))), (rs, rp, rr), (cs, Js, cp, Jp)
+        total, weights = 0.0, []
+        for r in (rs, rp, prob.prior_residuals(x)):
+            rho, w = _rho_and_weights(r / f_scale, loss)
+            total += rho
+            weights.append(w)
+        return 0.5 * f_scale**2 * total, weights
 
-    cost, (rs, rp, rr), _ = robust_cost(x)
+    cost, (Ws, Wp, Wr) = robust_cost(x)
+    rr = prob.prior_residuals(x)
     nfev += 1
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
@@ -252,9 +257,6 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         for j in prob.frozen:
             Jr[:, N_RIG + j] = 0.0
     for _ in range(max_outer):
-        Ws = _irls_weights(rs / f_scale, loss)
-        Wp = _irls_weights(rp / f_scale, loss)
-        Wr = _irls_weights(rr / f_scale, loss)
         Qs, Qp = mp.moments(Ws, Wp)
 
         def quad(cs, cp, rr_, Qs=Qs, Qp=Qp, Wr=Wr):
@@ -301,13 +303,13 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
             lam = max(lam / 10.0, 1e-9)
             if done:
                 break
-        cn, (rs2, rp2, rr2), _ = robust_cost(xi)
+        cn, W2 = robust_cost(xi)
         nfev += 1
         if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
             status = -1 if status == 0 else status
             break
         done = cost - cn <= tol * max(cost, 1e-300)
-        x, cost, (rs, rp, rr) = xi, cn, (rs2, rp2, rr2)
+        x, cost, (Ws, Wp, Wr), rr = xi, cn, W2, prob.prior_residuals(xi)
         if done:
             status = 1
             break

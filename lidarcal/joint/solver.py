@@ -96,6 +96,14 @@ def _rho(z: np.ndarray, loss: str) -> np.ndarray:
     raise ValueError(f"unknown loss {loss!r}")
 
 
+def _rho_and_weights(z: np.ndarray, loss: str) -> tuple[float, np.ndarray]:
+    """``sum rho`` and the IRLS weights ``rho'`` of normalised residuals ``z`` in one go."""
+    if loss == "soft_l1":
+        t = np.sqrt(1 + z * z)
+        return 2 * float(np.sum(t)) - 2 * len(z), 1 / t
+    return float(np.sum(_rho(z, loss))), _irls_weights(z, loss)
+
+
 def _irls_weights(z: np.ndarray, loss: str) -> np.ndarray:
     """rho'(s) at ``s = z^2``: the IRLS weight of each normalised residual."""
     s = z * z
