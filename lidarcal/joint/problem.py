@@ -139,7 +139,7 @@ class _Problem:
         r_scan = np.einsum("ij,ij->i", X, n[b]) - dd[b]
         # stripe centres back-projected onto their board (eq. 5), against the laser plane
         p = d.stripe_pos
-        P = _stripe_points(d, bR, bT, cache=len(x) <= N_RIG)["P"]
+        P = _stripe_points(d, bR, bT, cache=not np.any(x[N_RIG:]))["P"]
         z = R[p, :, 2]
         r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.scale_px
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
@@ -287,7 +287,7 @@ class _Problem:
         k, a, R_ref, T_ref = _rig(x, self.base)
         R, _ = _poses(k, a, R_ref, T_ref, self.t)
         bR, bT = _boards(x, self.base)
-        ent = _stripe_points(d, bR, bT, jacobian=True, cache=len(x) <= N_RIG)
+        ent = _stripe_points(d, bR, bT, jacobian=True, cache=not np.any(x[N_RIG:]))
         # per (position, board): the stripe's direction on the board and the direction
         # perpendicular to it in the board
         nb = bR[:, :, 2]
