@@ -121,3 +121,23 @@ def test_angle_steps_from_moments_equal_central_differences(noisy_problem, monke
     assert np.all(np.isfinite(var0)) and np.any(np.abs(step0) > 3 * np.sqrt(var0))
     assert np.allclose(step, step0, rtol=0, atol=1e-6 * np.sqrt(var0).min())
     assert np.allclose(var, var0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "huber", "cauchy"])
+def test_moment_solver_reaches_the_row_solver_optimum(noisy_problem, loss):
+    """On one problem (noise model held), the moment solver's Newton passes end at the
+    optimum of the row-by-row robust Levenberg-Marquardt: same robust cost, parameters
+    within a small fraction of a sigma (the information of the fit)."""
+    from lidarcal.joint import irls_lm
+    from lidarcal.joint.moments import irls_moments
+
+    prob = noisy_problem
+    x0 = np.zeros(N_RIG + prob.n_ranging)
+    x0[7:10] = [0.5, -0.3, 0.2]  # start half a millimetre off
+    a = irls_moments(prob, x0, loss, 2.5)
+    b = irls_lm(lambda v: prob.normalised(v, False), lambda v: prob.jacobian(v, False), x0,
+                loss, 2.5, max_iter=200)
+    assert a.status == 1 and b.status == 1
+    assert a.cost == pytest.approx(b.cost, rel=1e-9)
+    dx = a.x - b.x
+    assert float(dx @ a.information @ dx) < 1e-4  # below 0.01 sigma

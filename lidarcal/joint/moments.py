@@ -33,7 +33,14 @@ import numpy as np
 from .noise import _Groups
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
-from .solver import LMResult, _irls_weights, _lm_scaling, _lm_step, _rho_and_weights
+from .solver import (
+    LMResult,
+    _curvature_weights,
+    _irls_weights,
+    _lm_scaling,
+    _lm_step,
+    _rho_and_weights,
+)
 
 
 def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
@@ -218,14 +225,18 @@ def moments_usable(prob: _Problem, use_corners: bool) -> bool:
 def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.0,
                  max_outer: int = 50, max_inner: int = 30, tol: float = 1e-12,
                  inner_tol: float = 1e-12, near: LMResult | None = None) -> LMResult:
-    """Robust fit of ``prob`` (planes held) by IRLS on per-group moments (module docstring).
+    """Robust fit of ``prob`` (planes held) on per-group moments (module docstring).
 
-    Outer loop: residuals at ``x``, robust weights ``W = rho'``, group moments ``Q``.
-    Inner loop: Levenberg-Marquardt on ``sum c^T Q c`` (+ the ranging prior, weighted
-    alike), exact for the held weights. Stops when an outer pass moves the robust
-    cost by less than ``tol`` (relative). Returns the robust cost at the end
-    (scipy's definition, as :func:`lidarcal.joint.solver.irls_lm`) and the Gauss-Newton
-    information ``sum J^T Q J`` of the last inner step.
+    Outer loop: residuals at ``x``, their robust weights ``W = rho'`` and second-order
+    weights ``W2 = rho' + 2 z^2 rho''`` (:func:`lidarcal.joint.solver._curvature_weights`),
+    group moments ``Q`` and ``Q2``. Inner loop: Levenberg-Marquardt on the second-order
+    model of the robust cost, ``sum (Q c0) . (c - c0) + 1/2 (c - c0)^T Q2 (c - c0)`` (+ the
+    ranging prior's): Newton steps on the robust cost, converging in a few passes. When
+    that pass does not lower the robust cost, the IRLS pass (``Q2 = Q``: a majoriser of the
+    cost, it never raises it) is taken instead. Stops when an outer pass moves the robust
+    cost by less than ``tol`` (relative). Returns the robust cost at the end (scipy's
+    definition, as :func:`lidarcal.joint.solver.irls_lm`) and the Gauss-Newton information
+    ``sum J^T Q2 J`` of the last inner step.
 
     ``near`` (another start's result on the same problem, with its information): stop
     (status 2) once an outer pass ends within one sigma of it, ``dx^T I dx <= 1``, at a
@@ -238,44 +249,52 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
     H = None
 
     def robust_cost(x: np.ndarray):
-        """Robust cost at ``x`` and the IRLS weights of its residuals (scan, stripe, prior)."""
+        """Robust cost at ``x``, its residuals' IRLS weights ``rho'`` and second-order weights
+        ``rho' + 2 z^2 rho''`` (scan, stripe, prior)."""
         cs, _, cp, _ = mp.coefficients(x, derivatives=False)
         rs, rp = mp.residuals(cs, cp)
-        total, weights = 0.0, []
+        total, weights, curv = 0.0, [], []
         for r in (rs, rp, prob.prior_residuals(x)):
             rho, w = _rho_and_weights(r / f_scale, loss)
             total += rho
             weights.append(w)
-        return 0.5 * f_scale**2 * total, weights
+            curv.append(_curvature_weights(r / f_scale, w, loss))
+        return 0.5 * f_scale**2 * total, weights, curv
 
-    cost, (Ws, Wp, Wr) = robust_cost(x)
-    rr = prob.prior_residuals(x)
-    nfev += 1
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
         Jr[:, N_RIG:] = np.diag(1 / prob.prior_sigma[:prob.n_ranging])
         for j in prob.frozen:
             Jr[:, N_RIG + j] = 0.0
-    for _ in range(max_outer):
-        Qs, Qp = mp.moments(Ws, Wp)
 
-        def quad(cs, cp, rr_, Qs=Qs, Qp=Qp, Wr=Wr):
-            return (float(np.sum(cs * (Qs @ cs[:, :, None])[:, :, 0]))
-                    + float(np.sum(cp * (Qp @ cp[:, :, None])[:, :, 0]))
-                    + float(np.sum(Wr * rr_ * rr_)))
+    def inner(x: np.ndarray, G: tuple, C: tuple, Wr: np.ndarray, Wr2: np.ndarray):
+        """Levenberg-Marquardt on the model ``sum (G c0) . (c - c0) + 1/2 (c - c0)^T C (c - c0)``
+        (+ the prior's) of the robust cost about ``x`` (``c0 = c(x)``; ``C = G``: the IRLS
+        quadratic). Returns the new ``x`` and the Gauss-Newton information."""
+        (Gs, Gp), (Cs, Cp) = G, C
+        cs0, _, cp0, _ = mp.coefficients(x, derivatives=False)
+        rr0 = prob.prior_residuals(x)
+        gs0 = np.einsum("gij,gj->gi", Gs, cs0)
+        gp0 = np.einsum("gij,gj->gi", Gp, cp0)
+        q_ref = float(np.sum(gs0 * cs0) + np.sum(gp0 * cp0) + np.sum(Wr * rr0 * rr0))
 
-        xi = x.copy()
-        cs, Js, cp, Jp = mp.coefficients(xi)
-        q = quad(cs, cp, rr)
-        lam = 1e-4
+        def model(cs, cp, rr_):
+            ds, dp, dr = cs - cs0, cp - cp0, rr_ - rr0
+            return (float(np.sum(gs0 * ds) + np.sum(gp0 * dp) + np.sum(Wr * rr0 * dr))
+                    + 0.5 * (float(np.einsum("gi,gij,gj->", ds, Cs, ds))
+                             + float(np.einsum("gi,gij,gj->", dp, Cp, dp))
+                             + float(np.sum(Wr2 * dr * dr))))
+
+        xi, m, lam, H = x.copy(), 0.0, 1e-4, None
         for it in range(max_inner):
-            if it:
-                cs, Js, cp, Jp = mp.coefficients(xi)
-            QJs, QJp = Qs @ Js, Qp @ Jp
-            H = (Js.reshape(-1, mp.n_par).T @ QJs.reshape(-1, mp.n_par)
-                 + Jp.reshape(-1, mp.n_par).T @ QJp.reshape(-1, mp.n_par) + (Jr.T * Wr) @ Jr)
-            g = (QJs.reshape(-1, mp.n_par).T @ cs.ravel() + QJp.reshape(-1, mp.n_par).T @ cp.ravel()
-                 + (Jr.T * Wr) @ prob.prior_residuals(xi))
+            cs, Js, cp, Jp = mp.coefficients(xi)
+            rri = prob.prior_residuals(xi)
+            CJs, CJp = Cs @ Js, Cp @ Jp
+            H = (Js.reshape(-1, mp.n_par).T @ CJs.reshape(-1, mp.n_par)
+                 + Jp.reshape(-1, mp.n_par).T @ CJp.reshape(-1, mp.n_par) + (Jr.T * Wr2) @ Jr)
+            g = (np.einsum("gki,gk->i", Js, gs0 + np.einsum("gij,gj->gi", Cs, cs - cs0))
+                 + np.einsum("gki,gk->i", Jp, gp0 + np.einsum("gij,gj->gi", Cp, cp - cp0))
+                 + Jr.T @ (Wr * rr0 + Wr2 * (rri - rr0)))
             D = _lm_scaling(H)
             while True:
                 step = _lm_step(H, g, lam, D)
@@ -284,12 +303,12 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
                     first = pred
                 # converged: the predicted decrease is below rounding, or a millionth of this
                 # pass's first (the weights change before that matters)
-                if pred <= max(inner_tol * max(q, 1e-300), 1e-6 * first):
+                if pred <= max(inner_tol * max(q_ref, 1e-300), 1e-6 * first):
                     step = None
                     break
                 c2 = mp.coefficients(xi + step, derivatives=False)
-                q2 = quad(c2[0], c2[2], prob.prior_residuals(xi + step))
-                if np.isfinite(q2) and q2 <= q:
+                m2 = model(c2[0], c2[2], prob.prior_residuals(xi + step))
+                if np.isfinite(m2) and m2 <= m:
                     break
                 lam *= 10.0
                 if lam > 1e10:
@@ -298,18 +317,31 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
             if step is None:
                 break
             xi = xi + step
-            done = q - q2 <= inner_tol * max(q, 1e-300)
-            q = q2
+            done = m - m2 <= 0.5 * inner_tol * max(q_ref, 1e-300)
+            m = m2
             lam = max(lam / 10.0, 1e-9)
             if done:
                 break
-        cn, W2 = robust_cost(xi)
+        return xi, H
+
+    cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2) = robust_cost(x)
+    nfev += 1
+    for _ in range(max_outer):
+        Q = mp.moments(Ws, Wp)
+        # Newton on the robust cost first (second-order weights); the IRLS step (a
+        # majoriser: never increases the cost) when that does not decrease it
+        xi, H = inner(x, Q, mp.moments(Ws2, Wp2), Wr, Wr2)
+        cn, W2, C2 = robust_cost(xi)
         nfev += 1
+        if not (np.isfinite(cn) and cn <= cost):
+            xi, H = inner(x, Q, Q, Wr, Wr)
+            cn, W2, C2 = robust_cost(xi)
+            nfev += 1
         if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
             status = -1 if status == 0 else status
             break
         done = cost - cn <= tol * max(cost, 1e-300)
-        x, cost, (Ws, Wp, Wr), rr = xi, cn, W2, prob.prior_residuals(xi)
+        x, cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2) = xi, cn, W2, C2
         if done:
             status = 1
             break

@@ -104,6 +104,24 @@ def _rho_and_weights(z: np.ndarray, loss: str) -> tuple[float, np.ndarray]:
     return float(np.sum(_rho(z, loss))), _irls_weights(z, loss)
 
 
+def _curvature_weights(z: np.ndarray, w: np.ndarray, loss: str) -> np.ndarray:
+    """``rho'(s) + 2 s rho''(s)`` at ``s = z^2`` (``w = rho'``): the second derivative of the
+    robust cost along a residual (Triggs et al. 2000, "Bundle adjustment", section 4.3),
+    floored at 0 (where the loss bends down, Gauss-Newton takes no curvature)."""
+    s = z * z
+    if loss == "linear":
+        return np.ones_like(s)
+    if loss == "soft_l1":
+        return w ** 3  # (1 + s)^(-3/2)
+    if loss == "huber":
+        return (s <= 1).astype(float)
+    if loss == "cauchy":
+        return np.maximum(1 - s, 0.0) * w * w
+    if loss == "arctan":
+        return np.maximum(1 - 3 * s * s, 0.0) * w * w
+    raise ValueError(f"unknown loss {loss!r}")
+
+
 def _irls_weights(z: np.ndarray, loss: str) -> np.ndarray:
     """rho'(s) at ``s = z^2``: the IRLS weight of each normalised residual."""
     s = z * z
