@@ -70,13 +70,14 @@ class _Groups:
         self.g1 = 1 - np.sqrt(s2 / (s2 + self.ss * v1))
         self.sig_g = self.sigma[b]
 
-    def moments(self, r: np.ndarray, w: np.ndarray | None = None
+    def moments(self, r: np.ndarray, w: np.ndarray | None = None, counts: tuple | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Per-group mean and slope (least squares along ``s``) of ``r`` over the kept residuals."""
+        """Per-group mean and slope (least squares along ``s``) of ``r`` over the kept residuals
+        (or weights ``w``; ``counts``: their :meth:`_counts`, when known)."""
         if w is None:
             w, n, ss = self.w, self.n, self.ss
         else:
-            n, ss = self._counts(w)
+            n, ss = self._counts(w) if counts is None else counts
         m0 = np.bincount(self.gid, w * r, minlength=self.n_groups) / np.maximum(n, 1e-300)
         m1 = np.bincount(self.gid, w * r * self.sc, minlength=self.n_groups) / ss
         return m0, m1
@@ -131,8 +132,8 @@ class _Groups:
                 continue
             sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
         w = (np.abs(within) <= CLIP_SIGMAS * sig[self.board_of_group[g]]).astype(float)
-        a0, a1 = self.moments(r, w)
         n, ss = self._counts(w)
+        a0, a1 = self.moments(r, w, (n, ss))
         vg = [np.zeros(self.n_groups), np.zeros(self.n_groups)]
         for b in range(2):
             grp = (self.board_of_group == b) & (n >= 3)
