@@ -61,10 +61,11 @@ def _noise_state(prob: _Problem) -> list:
                      prob.base.board_R.tobytes() + prob.base.board_T.tobytes()]
 
 
-def _observations(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
+def _observations(prob: _Problem) -> dict:
     """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
-    (module docstring). They do not depend on the rig parameters: computed once per noise
-    state and reused by every solve, the covariance and the jitter test on it."""
+    (module docstring), as ``{"hs": .., "hp": ..}`` (the moments add their row products).
+    They do not depend on the rig parameters: computed once per noise state and reused by
+    every solve, the covariance and the jitter test on it."""
     state = _noise_state(prob)
     hit = _OBS_CACHE.get(prob.data)
     if hit is not None and all(a is b for a, b in zip(hit[0][:-1], state[:-1])) \
@@ -78,8 +79,9 @@ def _observations(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
     s = prob.scale_px[:, None]
     hp = np.column_stack([s * P, s]) if len(P) else np.zeros((0, 4))
     hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]
-    _OBS_CACHE[prob.data] = (state, (hs, hp))
-    return hs, hp
+    obs = {"hs": hs, "hp": hp}
+    _OBS_CACHE[prob.data] = (state, obs)
+    return obs
 
 
 class _MomentProblem:
@@ -92,7 +94,8 @@ class _MomentProblem:
         bR, bT = prob.base.board_R, prob.base.board_T
         self.nb = bR[:, :, 2]
         self.db = np.einsum("ij,ij->i", self.nb, bT)
-        self.hs, self.hp = _observations(prob)
+        self.obs = _observations(prob)
+        self.hs, self.hp = self.obs["hs"], self.obs["hp"]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
         self.n_groups = prob.scan.n_groups
         self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
@@ -185,36 +188,23 @@ class _MomentProblem:
         """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
 
         One weighted pass over the products ``h~_i h~_j`` (i <= j, computed once per
-        noise state) and a sum per group."""
+        noise state, kept with the observations) and a sum per group."""
         out = []
-        for h, W, cuts in ((self.hs, Ws, self.cuts_s), (self.hp, Wp, self.cuts_p)):
+        for kind, W, cuts in (("hs", Ws, self.cuts_s), ("hp", Wp, self.cuts_p)):
+            h = self.obs[kind]
             k = h.shape[1]
             Q = np.zeros((self.n_groups, k, k))
             iu = np.triu_indices(k)
             nonempty = np.flatnonzero(np.diff(cuts) > 0)
             if len(nonempty):
-                F = _products(h)
+                F = self.obs.get("F" + kind)
+                if F is None:
+                    F = self.obs["F" + kind] = h[:, iu[0]] * h[:, iu[1]]
                 Q[nonempty[:, None], iu[0], iu[1]] = np.add.reduceat(F * W[:, None],
                                                                      cuts[nonempty], axis=0)
                 Q[:, iu[1], iu[0]] = Q[:, iu[0], iu[1]]
             out.append(Q)
         return out[0], out[1]
-
-
-_PRODUCTS: dict = {}
-
-
-def _products(h: np.ndarray) -> np.ndarray:
-    """``h_i h_j`` (i <= j) of every row (M, k (k + 1) / 2), kept for the last two ``h``."""
-    hit = _PRODUCTS.get(id(h))
-    if hit is not None and hit[0] is h:
-        return hit[1]
-    iu = np.triu_indices(h.shape[1])
-    F = h[:, iu[0]] * h[:, iu[1]]
-    if len(_PRODUCTS) >= 2:
-        _PRODUCTS.clear()
-    _PRODUCTS[id(h)] = (h, F)
-    return F
 
 
 def moments_usable(prob: _Problem, use_corners: bool) -> bool:
