@@ -1,5 +1,7 @@
-"""Analytic derivatives of the joint fit (lidarcal.joint.problem.pose_jacobian) against
-central differences, over random rigs and parameter steps (property test)."""
+"""The joint fit's fast forms against their direct ones: analytic pose derivatives
+(lidarcal.joint.problem.pose_jacobian) against central differences over random rigs and
+parameter steps (property test); the moment covariance, angle steps and solver against the
+row-by-row ones; the second start's step; the stripe rays from section 1."""
 
 from __future__ import annotations
 
@@ -141,3 +143,20 @@ def test_moment_solver_reaches_the_row_solver_optimum(noisy_problem, loss):
     assert a.cost == pytest.approx(b.cost, rel=1e-9)
     dx = a.x - b.x
     assert float(dx @ a.information @ dx) < 1e-4  # below 0.01 sigma
+
+
+def test_stripe_rays_from_section1_points_equal_undistortion():
+    """The rays of the stripe centres taken from section 1's back-projected points are the
+    undistorted pixels' rays; points that do not belong to the pixels are not used."""
+    from lidarcal.camera import pixel_rays
+    from lidarcal.joint import joint_data
+    from lidarcal.joint.data import _stripe_rays
+    from lidarcal.study import StudySetting, simulate_rig
+
+    res = simulate_rig(22, StudySetting(n_positions=4)).result
+    d = joint_data(res, "pnp")
+    assert np.allclose(d.stripe_rays, pixel_rays(d.camera, d.stripe_px), rtol=0, atol=1e-14)
+    pts = d.stripe_rays * 500.0
+    shifted = np.roll(pts, 1, axis=0)  # one row off: a sample reprojects elsewhere
+    assert np.array_equal(_stripe_rays(d.camera, d.stripe_px, shifted),
+                          pixel_rays(d.camera, d.stripe_px))
