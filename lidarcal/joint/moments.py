@@ -229,9 +229,10 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
     ``sum J^T Q2 J`` of the last inner step.
 
     ``near`` (another start's result on the same problem, with its information): stop
-    (status 2) once an outer pass ends within one sigma of it, ``dx^T I dx <= 1``, at a
-    robust cost no lower than its: the solution is in the same basin of the cost and
-    converges to the same optimum (the starts tie).
+    (status 2) once an outer pass ends within three sigma of it, ``d^2 = dx^T I dx <= 9``,
+    at a robust cost above its by ``d^2 / 2`` (to a quarter of ``d^2``: the cost's quadratic
+    model about it holds): the solution is in the same basin and converges to the same
+    optimum (the starts tie).
     """
     mp = _MomentProblem(prob)
     x = np.asarray(x0, dtype=float).copy()
@@ -337,7 +338,9 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
             break
         if near is not None and near.information is not None and cost >= near.cost:
             dx = x - near.x
-            if float(dx @ near.information @ dx) <= 1.0:
+            d2 = float(dx @ near.information @ dx)
+            # within three sigma, where the cost rises as its quadratic model says
+            if d2 <= 9.0 and abs((cost - near.cost) - 0.5 * d2) <= 0.25 * d2 + 1e-9 * cost:
                 status = 2
                 break
     return LMResult(x, cost, nfev, status, H)
