@@ -49,6 +49,7 @@ def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
 
 
 _OBS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_TRIU = {k: np.triu_indices(k) for k in (4, 7)}  # the moment matrices' upper triangles
 
 
 def _noise_state(prob: _Problem) -> list:
@@ -194,14 +195,15 @@ class _MomentProblem:
             h = self.obs[kind]
             k = h.shape[1]
             Q = np.zeros((self.n_groups, k, k))
-            iu = np.triu_indices(k)
+            iu = _TRIU[k]
             nonempty = np.flatnonzero(np.diff(cuts) > 0)
             if len(nonempty):
                 F = self.obs.get("F" + kind)
                 if F is None:
                     F = self.obs["F" + kind] = h[:, iu[0]] * h[:, iu[1]]
-                Q[nonempty[:, None], iu[0], iu[1]] = np.add.reduceat(F * W[:, None],
-                                                                     cuts[nonempty], axis=0)
+                    self.obs["B" + kind] = np.empty_like(F)  # reused: no page faults per pass
+                FW = np.multiply(F, W[:, None], out=self.obs["B" + kind])
+                Q[nonempty[:, None], iu[0], iu[1]] = np.add.reduceat(FW, cuts[nonempty], axis=0)
                 Q[:, iu[1], iu[0]] = Q[:, iu[0], iu[1]]
             out.append(Q)
         return out[0], out[1]
