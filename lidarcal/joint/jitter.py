@@ -83,7 +83,8 @@ def angle_jitter(prob: _Problem, x: np.ndarray, t_reported: np.ndarray, loss: st
 
     d1, _ = _angle_steps(prob, x, loss, f_scale)
     work = copy.copy(prob)
-    work.scan, work.stripe = copy.deepcopy(prob.scan), copy.deepcopy(prob.stripe)
+    # a _Groups replaces its arrays when re-estimated, never changes them: shallow copies
+    work.scan, work.stripe = copy.copy(prob.scan), copy.copy(prob.stripe)
     work.t = prob.t + d1
     work.estimate_noise(x, correlated)
     d2, v = _angle_steps(work, x, loss, f_scale)
