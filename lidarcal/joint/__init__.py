@@ -6,7 +6,9 @@ away. Here the rigid turntable model of :class:`lidarcal.turntable.RigidModel`,
 ``pose(psi) = Rot(axis, psi - psi_ref) o pose_ref``, is fitted directly to the
 raw observations of all positions at once by robust least squares
 (maximum likelihood under the noise model below), started from the rigid
-model and the paper's chain (the lower robust cost wins); the covariance of
+model and the paper's chain (the lower robust cost wins; costs within the start
+solves' tolerance tie and the first start is kept, and the second stops as soon as
+it is within one sigma of the first's solution); the covariance of
 the result comes from the Jacobian at the solution.
 
 Unknowns (minimal parametrisation, 10 + optionally 12):
@@ -74,7 +76,11 @@ coefficients that depend on the parameters per (position, board) only, and the
 correlated-noise whitening is linear too: with the robust weights held, a
 group's weighted sum of squares is exactly ``c^T Q c`` with its second-moment
 matrix ``Q``, so an iteration costs O(positions); the weights are updated
-between inner solves (IRLS). ``solver="lm"``: :func:`irls_lm`, the same
+between inner solves, whose model is the robust cost's second-order one (Newton
+passes; the IRLS pass as fallback). The derivatives of ``c`` wrt the rig
+parameters are analytic (:func:`lidarcal.joint.problem.pose_jacobian`); the
+covariance above and the jitter test's angle steps come from the same moments
+(exact). ``solver="lm"``: :func:`irls_lm`, the same
 optimum row by row (Levenberg-Marquardt on the (n, n) normal equations,
 weights updated every iteration; also used with ``fit_planes``);
 ``solver="scipy"``: ``scipy.optimize.least_squares`` (dense SVD of the ~1e5 x n

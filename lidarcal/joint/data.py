@@ -65,10 +65,27 @@ class JointData:
                 and all(p is not None for p in self.black_parity))
 
 
-def _stripe_rays(camera: CameraModel, px: np.ndarray) -> np.ndarray:
-    from ..camera import pixel_rays
+def _stripe_rays(camera: CameraModel, px: np.ndarray, points: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """Undistorted rays ``(x, y, 1)`` (S, 3) through the stripe-centre pixels ``px``.
 
-    return pixel_rays(camera, px) if len(px) else np.zeros((0, 3))
+    ``points``: the same centres already back-projected (eq. 5, section 1,
+    ``CameraLines.points_3d``): their rays are ``P / P_z``, used when a sample of them
+    reprojects onto its pixels through ``camera`` (to 1e-6 px); otherwise, or without
+    them, every pixel is undistorted (:func:`lidarcal.camera.pixel_rays`).
+    """
+    from ..camera import pixel_rays, project_points
+
+    if len(px) == 0:
+        return np.zeros((0, 3))
+    if points is not None and points.shape == (len(px), 3):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rays = points / points[:, 2:3]
+        pick = np.unique(np.linspace(0, len(px) - 1, min(len(px), 64)).astype(int))
+        pick = pick[np.all(np.isfinite(rays[pick]), axis=1)]
+        if len(pick) and np.max(np.abs(project_points(camera, rays[pick]) - px[pick])) < 1e-6:
+            return rays
+    return pixel_rays(camera, px)
 
 
 def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray, np.ndarray]],
@@ -76,7 +93,9 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
                      board_T: np.ndarray, corners_px=None, object_points=None,
                      samples: list[Pose] | None = None, indices=None,
                      board_spec: BoardSpec | None = None,
-                     black_parity: tuple[int | None, int | None] | None = None) -> JointData:
+                     black_parity: tuple[int | None, int | None] | None = None,
+                     stripe_points: list[tuple[np.ndarray, np.ndarray]] | None = None
+                     ) -> JointData:
     """:class:`JointData` from per-position observations, already assigned to boards.
 
     Parameters
@@ -91,12 +110,15 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
         The chessboard and which square parity is black on each board
         (:func:`lidarcal.ranging.black_parity`): the fit then knows the returns
         from black squares (ranging model).
+    stripe_points : list of (points_board0 (S0, 3), points_board1 (S1, 3)), optional
+        The stripe centres back-projected onto their boards (section 1): their rays
+        save undistorting every pixel again (checked on a sample).
     """
     psi = np.asarray(psi_deg, dtype=float).ravel()
     if len(scans) != len(psi) or len(stripes) != len(psi):
         raise ValueError(f"Expected one scan and one stripe pair per position ({len(psi)}), got "
                          f"{len(scans)} and {len(stripes)}")
-    xy, sp, sb, cpx, cp, cb = [], [], [], [], [], []
+    xy, sp, sb, cpx, cp, cb, pts = [], [], [], [], [], [], []
     for i, (sc, st) in enumerate(zip(scans, stripes)):
         for b in range(2):
             p = np.asarray(sc[b], dtype=float).reshape(-1, 2)
@@ -105,11 +127,13 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
             sp.append(np.full(len(p), i))
             sb.append(np.full(len(p), b))
             c = np.asarray(st[b], dtype=float).reshape(-1, 2)
+            if stripe_points is not None:
+                pts.append(np.asarray(stripe_points[i][b], dtype=float).reshape(-1, 3))
             cpx.append(c)
             cp.append(np.full(len(c), i))
             cb.append(np.full(len(c), b))
     stripe_px = np.vstack(cpx)
-    rays = _stripe_rays(camera, stripe_px)
+    rays = _stripe_rays(camera, stripe_px, np.vstack(pts) if pts else None)
     ok = np.all(np.isfinite(rays), axis=1)
     cat = lambda v: np.concatenate(v).astype(int)
     return JointData(camera, psi, np.arange(len(psi)) if indices is None else np.asarray(indices),
@@ -132,12 +156,15 @@ def joint_data(result, board_poses: str = "homography") -> JointData:
     if board_poses not in ("homography", "pnp"):
         raise ValueError(f"board_poses must be 'homography' or 'pnp', got {board_poses!r}")
     pnp = board_poses == "pnp"
-    scans, stripes = [], []
+    scans, stripes, points = [], [], []
     for p in result.positions:
         pairs = p.pose.info.get("pairs", (0, 1))
         seg = (p.segments.points1, p.segments.points2)
         scans.append((seg[pairs[0]], seg[pairs[1]]))
         stripes.append(tuple(p.camera_lines.centres_px))
+        points.append(tuple(getattr(p.camera_lines, "points_3d", None) or (None, None)))
+    if any(q is None for pair in points for q in pair):
+        points = None
     boards = result.boards
     spec: BoardSpec | None = getattr(getattr(result, "dataset", None), "v_board", None)
     obj = spec.object_points() if spec is not None else None
@@ -151,4 +178,4 @@ def joint_data(result, board_poses: str = "homography") -> JointData:
                             np.array([b.T_pnp if pnp else b.T for b in boards]),
                             [b.corners_px for b in boards] if obj is not None else None, obj,
                             [p.pose for p in result.positions], [p.index for p in result.positions],
-                            spec, parity)
+                            spec, parity, points)

@@ -25,8 +25,10 @@ from .params import (
     _boards,
     _rig,
 )
-from .problem import _Problem
+from .problem import _Problem, start_step
 from .solver import _covariance, _rho, irls_lm
+
+START_TIE = 1e-6  # relative robust-cost difference below which two starts tie
 
 
 def _start_bases(result_or_models, data: JointData, psi_ref: float) -> list[_Base]:
@@ -79,9 +81,9 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             return x
         return np.concatenate([x[:N_RIG], np.zeros(2 * N_BOARD), x[N_RIG:]])
 
-    def solve(prob: _Problem, x: np.ndarray, tol: float = 1e-12):
+    def solve(prob: _Problem, x: np.ndarray, tol: float = 1e-12, near=None):
         if solver == "moments" and moments_usable(prob, use_corners):
-            return irls_moments(prob, x, loss, f_scale, tol=tol)
+            return irls_moments(prob, x, loss, f_scale, tol=tol, near=near)
         if solver == "scipy":
             from scipy.optimize import least_squares
 
@@ -93,19 +95,32 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
 
     sols = []
     for base in bases:
-        prob = _Problem(data, base, psi_ref, n_rng, prior_arrays)
-        prob.classify(_full(x0))
-        prob.set_stripe_scale(_full(x0))
-        prob.estimate_noise(x0, correlated=False)
-        sols.append((prob, solve(prob, x0, 1e-8)))  # to pick a start; the passes below finish
+        # later starts as steps in the first start's problem (same noise model and scales)
+        step = start_step(sols[0][0].base, base) if sols else None
+        if step is None:
+            prob, xs = _Problem(data, base, psi_ref, n_rng, prior_arrays), x0
+            prob.classify(_full(x0))
+            prob.set_stripe_scale(_full(x0))
+            prob.estimate_noise(x0, correlated=False)
+        else:
+            prob, xs = sols[0][0], np.concatenate([step, x0[N_RIG:]])
+        near = sols[0][1] if sols and prob is sols[0][0] else None  # same basin: stop, tie
+        sols.append((prob, solve(prob, xs, 1e-8, near)))  # to pick a start; the passes below finish
     # costs are comparable only with the same noise model: rescore with the first start's
     scores = []
     for prob, sol in sols:
+        if prob is sols[0][0]:  # the solver's robust cost (scipy's definition)
+            scores.append(2 * sol.cost / f_scale**2)
+            continue
         prob.scan, prob.stripe = sols[0][0].scan, sols[0][0].stripe
         prob.sigma_corner = sols[0][0].sigma_corner
         r = prob.normalised(_full(sol.x), use_corners)
         scores.append(np.sum(_rho(r / f_scale, loss)))
+    # the first start unless another is lower by more than the start solves' tolerance
+    # (solved to 1e-8: starts that reach the same optimum tie)
     best = int(np.argmin(scores))
+    if scores[0] <= scores[best] + START_TIE * abs(scores[0]):
+        best = 0
     prob, sol = sols[best]
     x = sol.x
 
@@ -312,36 +327,41 @@ def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None =
     return out
 
 
-def _rows_by_position_board(pos: np.ndarray, board: np.ndarray, n_positions: int):
-    """``rows(i, b)``: the indices where ``pos == i`` and ``board == b``, in their order
-    (one stable sort instead of a full-length mask per position and board)."""
-    key = 2 * np.asarray(pos) + np.asarray(board)
-    order = np.argsort(key, kind="stable")
-    cuts = np.searchsorted(key[order], np.arange(2 * n_positions + 1))
-    return lambda i, b: order[cuts[2 * i + b]:cuts[2 * i + b + 1]]
-
-
 def scan_coverage(data: JointData, model) -> np.ndarray:
     """Per position and board (N, 2): the span of the kept scan returns along the board's
     laser line over the span of its stripe centres (1: the scan covers what the camera sees
     of the line; NaN: too few points). Returns in the camera frame by ``model.pose``."""
-    out = np.full((data.n_positions, 2), np.nan)
-    rays_of = _rows_by_position_board(data.stripe_pos, data.stripe_board, data.n_positions)
-    scan_of = _rows_by_position_board(data.scan_pos, data.scan_board, data.n_positions)
-    for i in range(data.n_positions):
-        p = model.pose(float(data.psi_deg[i]))
-        for b in range(2):
-            ray = data.stripe_rays[rays_of(i, b)]
-            xy = data.scan_xy[scan_of(i, b)]
-            if len(ray) < 5 or len(xy) < 2:
-                continue
-            n = data.board_R[b][:, 2]
-            P = ray * (float(n @ data.board_T[b]) / (ray @ n))[:, None]
-            X = xy[:, :1] * p.R[:, 0] + xy[:, 1:] * p.R[:, 1] + p.T
-            line = np.cross(n, p.R[:, 2])
-            line /= max(np.linalg.norm(line), 1e-12)
-            out[i, b] = np.ptp(X @ line) / max(np.ptp(P @ line), 1e-9)
-    return out
+    n_pos = data.n_positions
+    poses = model.pose(np.asarray(data.psi_deg, float))
+    poses = poses if isinstance(poses, list) else [poses]
+    R = np.array([p.R for p in poses]).reshape(n_pos, 3, 3)
+    T = np.array([p.T for p in poses]).reshape(n_pos, 3)
+    nb = data.board_R[:, :, 2]
+    line = np.cross(np.tile(nb, (n_pos, 1)), np.repeat(R[:, :, 2], 2, axis=0))  # group 2 i + b
+    line /= np.maximum(np.linalg.norm(line, axis=1), 1e-12)[:, None]
+    P = ray = data.stripe_rays
+    if len(ray):
+        d = np.einsum("ij,ij->i", nb, data.board_T)[data.stripe_board]
+        P = ray * (d / np.einsum("ij,ij->i", ray, nb[data.stripe_board]))[:, None]
+    p, xy = data.scan_pos, data.scan_xy
+    X = xy[:, :1] * R[p, :, 0] + xy[:, 1:] * R[p, :, 1] + T[p]
+    spans = []
+    for pts, pos, brd in ((P, data.stripe_pos, data.stripe_board), (X, p, data.scan_board)):
+        g = 2 * np.asarray(pos) + np.asarray(brd)
+        order = np.argsort(g, kind="stable")
+        g = g[order]
+        proj = np.einsum("ij,ij->i", pts[order], line[g]) if len(g) else np.zeros(0)
+        cnt = np.bincount(g, minlength=2 * n_pos)
+        span = np.zeros(2 * n_pos)
+        ne = np.flatnonzero(cnt)
+        if len(ne):
+            starts = np.searchsorted(g, ne)
+            span[ne] = np.maximum.reduceat(proj, starts) - np.minimum.reduceat(proj, starts)
+        spans.append((span, cnt))
+    (sp, cp), (ss, cs) = spans
+    out = ss / np.maximum(sp, 1e-9)
+    out[(cp < 5) | (cs < 2)] = np.nan
+    return out.reshape(n_pos, 2)
 
 
 def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripes: bool = True,

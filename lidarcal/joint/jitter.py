@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .moments import _MomentProblem, moments_usable
 from .params import N_RIG
 from .problem import _Problem
 from .solver import _irls_weights
@@ -13,29 +14,43 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Generalised least-squares step of each position's own turntable angle, rig held at ``x``.
 
-    The residuals of position ``i`` depend on its angle ``t_i`` only: one central
-    difference of all angles at once gives every ``dr/dt_i``. With robust weights
-    ``w``: ``H_i = sum w J^2``, ``g_i = sum w J r``; step ``-g_i / H_i`` (rad) and its
-    variance ``s^2 / H_i`` (``s^2 >= 1`` the weighted residual variance).
+    The residuals of position ``i`` depend on its angle ``t_i`` only. With robust
+    weights ``w``: ``H_i = sum w J^2``, ``g_i = sum w J r`` (``J = dr/dt_i``); step
+    ``-g_i / H_i`` (rad) and its variance ``s^2 / H_i`` (``s^2 >= 1`` the weighted residual
+    variance). Planes held (rows grouped): from the group moments, ``J`` of a group being
+    ``h~ . dc/dt`` (:meth:`lidarcal.joint.moments._MomentProblem.angle_coefficients`);
+    otherwise one central difference of all angles at once.
     """
     d = prob.data
-    t0 = prob.t
-    h = 1e-5
-    r0 = prob.normalised(x, False)
-    prob.t = t0 + h
-    rp = prob.normalised(x, False)
-    prob.t = t0 - h
-    rm = prob.normalised(x, False)
-    prob.t = t0
-    pos = np.concatenate([d.scan_pos, d.stripe_pos])
-    m = len(pos)  # the ranging prior's pseudo-residuals follow: they do not move with t
-    r0, rp, rm = r0[:m], rp[:m], rm[:m]
-    J = (rp - rm) / (2 * h)
-    w = _irls_weights(r0 / f_scale, loss)
     n = d.n_positions
+    if len(x) == N_RIG + prob.n_ranging and moments_usable(prob, False):
+        mp = _MomentProblem(prob)
+        cs, dcs, cp, dcp = mp.angle_coefficients(x)
+        rs, rp = mp.residuals(cs, cp)
+        r0 = np.concatenate([rs, rp])
+        w = _irls_weights(r0 / f_scale, loss)
+        Qs, Qp = mp.moments(w[:len(rs)], w[len(rs):])
+        H = (np.einsum("gi,gij,gj->g", dcs, Qs, dcs)
+             + np.einsum("gi,gij,gj->g", dcp, Qp, dcp)).reshape(n, 2).sum(1)
+        g = (np.einsum("gi,gij,gj->g", dcs, Qs, cs)
+             + np.einsum("gi,gij,gj->g", dcp, Qp, cp)).reshape(n, 2).sum(1)
+    else:
+        t0 = prob.t
+        h = 1e-5
+        r0 = prob.normalised(x, False)
+        prob.t = t0 + h
+        rp = prob.normalised(x, False)
+        prob.t = t0 - h
+        rm = prob.normalised(x, False)
+        prob.t = t0
+        pos = np.concatenate([d.scan_pos, d.stripe_pos])
+        m = len(pos)  # the ranging prior's pseudo-residuals follow: they do not move with t
+        r0, rp, rm = r0[:m], rp[:m], rm[:m]
+        J = (rp - rm) / (2 * h)
+        w = _irls_weights(r0 / f_scale, loss)
+        H = np.bincount(pos, w * J * J, minlength=n)
+        g = np.bincount(pos, w * J * r0, minlength=n)
     s2 = max(float(np.sum(w * r0 * r0)) / max(len(r0) - N_RIG - n, 1), 1.0)
-    H = np.bincount(pos, w * J * J, minlength=n)
-    g = np.bincount(pos, w * J * r0, minlength=n)
     ok = H > 1e-300
     step = np.where(ok, -g / np.where(ok, H, 1.0), 0.0)
     return step, np.where(ok, s2 / np.where(ok, H, 1.0), np.inf)
@@ -68,7 +83,8 @@ def angle_jitter(prob: _Problem, x: np.ndarray, t_reported: np.ndarray, loss: st
 
     d1, _ = _angle_steps(prob, x, loss, f_scale)
     work = copy.copy(prob)
-    work.scan, work.stripe = copy.deepcopy(prob.scan), copy.deepcopy(prob.stripe)
+    # a _Groups replaces its arrays when re-estimated, never changes them: shallow copies
+    work.scan, work.stripe = copy.copy(prob.scan), copy.copy(prob.stripe)
     work.t = prob.t + d1
     work.estimate_noise(x, correlated)
     d2, v = _angle_steps(work, x, loss, f_scale)

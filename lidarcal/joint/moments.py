@@ -26,12 +26,21 @@ optimum as :func:`lidarcal.joint.solver.irls_lm`.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from .noise import _Groups
-from .params import N_RIG, _poses, _rig
-from .problem import _Problem
-from .solver import LMResult, _irls_weights, _lm_scaling, _lm_step, _rho
+from .params import N_BOARD, N_RIG, _poses, _rig
+from .problem import _Problem, _stripe_points
+from .solver import (
+    LMResult,
+    _curvature_weights,
+    _irls_weights,
+    _lm_scaling,
+    _lm_step,
+    _rho_and_weights,
+)
 
 
 def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
@@ -39,26 +48,55 @@ def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
     return grp.whiten_columns(h)
 
 
+_OBS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_TRIU = {k: np.triu_indices(k) for k in (4, 7)}  # the moment matrices' upper triangles
+
+
+def _noise_state(prob: _Problem) -> list:
+    """What the whitened observations depend on besides the data and the held planes: the
+    noise model and masks of both groupings, the stripe scales and the dark shares (arrays
+    that are replaced, never changed in place, when they change: compared by identity),
+    and the planes (by value)."""
+    arrays = [a for g in (prob.scan, prob.stripe) for a in (g.w, g.g0, g.g1, g.sig_g, g.sc)]
+    return arrays + [prob.scale_px, prob.dark,
+                     prob.base.board_R.tobytes() + prob.base.board_T.tobytes()]
+
+
+def _observations(prob: _Problem) -> dict:
+    """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
+    (module docstring), as ``{"hs": .., "hp": ..}`` (the moments add their row products).
+    They do not depend on the rig parameters: computed once per noise state and reused by
+    every solve, the covariance and the jitter test on it."""
+    state = _noise_state(prob)
+    hit = _OBS_CACHE.get(prob.data)
+    if hit is not None and all(a is b for a, b in zip(hit[0][:-1], state[:-1])) \
+            and hit[0][-1] == state[-1]:
+        return hit[1]
+    d = prob.data
+    u, dark = prob.scan_u, prob.dark
+    hs = np.column_stack([d.scan_xy, u, dark[:, None] * u, np.ones(len(u))])
+    hs = _whitened(prob.scan, hs) * prob.scan.w[:, None]
+    P = _stripe_points(d, prob.base.board_R, prob.base.board_T)["P"]
+    s = prob.scale_px[:, None]
+    hp = np.column_stack([s * P, s]) if len(P) else np.zeros((0, 4))
+    hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]
+    obs = {"hs": hs, "hp": hp}
+    _OBS_CACHE[prob.data] = (state, obs)
+    return obs
+
+
 class _MomentProblem:
     """The scan and stripe blocks of a :class:`_Problem` as per-group homogeneous observations
     (planes held, the noise model and the masks as they are in ``prob``)."""
 
     def __init__(self, prob: _Problem):
-        d = prob.data
         self.prob = prob
         self.n_par = N_RIG + prob.n_ranging
-        u, dark = prob.scan_u, prob.dark
-        hs = np.column_stack([d.scan_xy, u, dark[:, None] * u, np.ones(len(u))])
-        self.hs = _whitened(prob.scan, hs) * prob.scan.w[:, None]
         bR, bT = prob.base.board_R, prob.base.board_T
         self.nb = bR[:, :, 2]
         self.db = np.einsum("ij,ij->i", self.nb, bT)
-        b = d.stripe_board
-        ray = d.stripe_rays
-        P = ray * (self.db[b] / np.einsum("ij,ij->i", ray, self.nb[b]))[:, None]
-        s = prob.scale_px[:, None]
-        hp = np.column_stack([s * P, s]) if len(P) else np.zeros((0, 4))
-        self.hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]
+        self.obs = _observations(prob)
+        self.hs, self.hp = self.obs["hs"], self.obs["hp"]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
         self.n_groups = prob.scan.n_groups
         self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
@@ -114,22 +152,61 @@ class _MomentProblem:
         Jp[:, 3, :N_RIG] = -(np.einsum("gi,gij->gj", Tg, dz) + np.einsum("gi,gij->gj", z, Gg[:, 9:12]))
         return cs, Js, cp, Jp
 
+    def angle_coefficients(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per group ``c`` and ``dc/dt`` wrt the group's own turntable angle: scans (G, 7) x 2,
+        stripes (G, 4) x 2. ``dR/dt = [k]x R`` and ``dT/dt = [k]x (T - a)`` (the rigid model,
+        :func:`lidarcal.joint.params._poses`)."""
+        prob = self.prob
+        xr, rv = prob.split(x)
+        k, a_pt, R_ref, T_ref = _rig(xr, prob.base)
+        R, T = _poses(k, a_pt, R_ref, T_ref, prob.t)
+        n_pos = len(prob.t)
+        pos = np.repeat(np.arange(n_pos), 2)
+        brd = np.tile([0, 1], n_pos)
+        n = self.nb[brd]
+        Rg, Tg = R[pos], T[pos]
+        dRg = np.cross(k, Rg.transpose(0, 2, 1)).transpose(0, 2, 1)  # [k]x R, column by column
+        dTg = np.cross(k, Tg - a_pt)
+        off, ex = rv[0], rv[1]
+
+        def scan(Rc, Tc, shift):
+            a = np.einsum("gi,gi->g", n, Rc[:, :, 0])
+            b = np.einsum("gi,gi->g", n, Rc[:, :, 1])
+            gam = np.einsum("gi,gi->g", n, Tc) - shift
+            return np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam])
+
+        z, dz = Rg[:, :, 2], dRg[:, :, 2]
+        cp = np.column_stack([z, -np.einsum("gi,gi->g", Tg, z)])
+        dcp = np.column_stack([dz, -np.einsum("gi,gi->g", dTg, z) - np.einsum("gi,gi->g", Tg, dz)])
+        return scan(Rg, Tg, self.db[brd]), scan(dRg, dTg, 0.0), cp, dcp
+
     def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
-        return (np.einsum("mk,mk->m", self.hs, cs[self.gs]),
-                np.einsum("mk,mk->m", self.hp, cp[self.gp]))
+        return (np.einsum("mk,mk->m", self.hs, np.take(cs, self.gs, axis=0)),
+                np.einsum("mk,mk->m", self.hp, np.take(cp, self.gp, axis=0)))
 
     def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4)."""
-        Qs = np.zeros((self.n_groups, 7, 7))
-        Qp = np.zeros((self.n_groups, 4, 4))
-        for Q, h, W, cuts in ((Qs, self.hs, Ws, self.cuts_s), (Qp, self.hp, Wp, self.cuts_p)):
-            hw = h * W[:, None]
-            for g in range(self.n_groups):  # rows sorted by group: one small product each
-                a, b = cuts[g], cuts[g + 1]
-                if b > a:
-                    Q[g] = hw[a:b].T @ h[a:b]
-        return Qs, Qp
+        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
+
+        One weighted pass over the products ``h~_i h~_j`` (i <= j, computed once per
+        noise state, kept with the observations) and a sum per group."""
+        out = []
+        for kind, W, cuts in (("hs", Ws, self.cuts_s), ("hp", Wp, self.cuts_p)):
+            h = self.obs[kind]
+            k = h.shape[1]
+            Q = np.zeros((self.n_groups, k, k))
+            iu = _TRIU[k]
+            nonempty = np.flatnonzero(np.diff(cuts) > 0)
+            if len(nonempty):
+                F = self.obs.get("F" + kind)
+                if F is None:
+                    F = self.obs["F" + kind] = h[:, iu[0]] * h[:, iu[1]]
+                    self.obs["B" + kind] = np.empty_like(F)  # reused: no page faults per pass
+                FW = np.multiply(F, W[:, None], out=self.obs["B" + kind])
+                Q[nonempty[:, None], iu[0], iu[1]] = np.add.reduceat(FW, cuts[nonempty], axis=0)
+                Q[:, iu[1], iu[0]] = Q[:, iu[0], iu[1]]
+            out.append(Q)
+        return out[0], out[1]
 
 
 def moments_usable(prob: _Problem, use_corners: bool) -> bool:
@@ -139,65 +216,92 @@ def moments_usable(prob: _Problem, use_corners: bool) -> bool:
 
 def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.0,
                  max_outer: int = 50, max_inner: int = 30, tol: float = 1e-12,
-                 inner_tol: float = 1e-12) -> LMResult:
-    """Robust fit of ``prob`` (planes held) by IRLS on per-group moments (module docstring).
+                 inner_tol: float = 1e-12, near: LMResult | None = None) -> LMResult:
+    """Robust fit of ``prob`` (planes held) on per-group moments (module docstring).
 
-    Outer loop: residuals at ``x``, robust weights ``W = rho'``, group moments ``Q``.
-    Inner loop: Levenberg-Marquardt on ``sum c^T Q c`` (+ the ranging prior, weighted
-    alike), exact for the held weights. Stops when an outer pass moves the robust
-    cost by less than ``tol`` (relative). Returns the robust cost at the end
-    (scipy's definition, as :func:`lidarcal.joint.solver.irls_lm`).
+    Outer loop: residuals at ``x``, their robust weights ``W = rho'`` and second-order
+    weights ``W2 = rho' + 2 z^2 rho''`` (:func:`lidarcal.joint.solver._curvature_weights`),
+    group moments ``Q`` and ``Q2``. Inner loop: Levenberg-Marquardt on the second-order
+    model of the robust cost, ``sum (Q c0) . (c - c0) + 1/2 (c - c0)^T Q2 (c - c0)`` (+ the
+    ranging prior's): Newton steps on the robust cost, converging in a few passes. When
+    that pass does not lower the robust cost, the IRLS pass (``Q2 = Q``: a majoriser of the
+    cost, it never raises it) is taken instead. Stops when an outer pass moves the robust
+    cost by less than ``tol`` (relative). Returns the robust cost at the end (scipy's
+    definition, as :func:`lidarcal.joint.solver.irls_lm`) and the Gauss-Newton information
+    ``sum J^T Q2 J`` of the last inner step.
+
+    ``near`` (another start's result on the same problem, with its information): stop
+    (status 2) once an outer pass ends within three sigma of it, ``d^2 = dx^T I dx <= 9``,
+    at a robust cost above its by ``d^2 / 2`` (to a quarter of ``d^2``: the cost's quadratic
+    model about it holds): the solution is in the same basin and converges to the same
+    optimum (the starts tie).
     """
     mp = _MomentProblem(prob)
     x = np.asarray(x0, dtype=float).copy()
     nfev, status = 0, 0
+    H = None
 
     def robust_cost(x: np.ndarray):
-        cs, Js, cp, Jp = mp.coefficients(x, derivatives=False)
+        """Robust cost at ``x``, its residuals' IRLS weights ``rho'`` and second-order weights
+        ``rho' + 2 z^2 rho''`` (scan, stripe, prior)."""
+        cs, _, cp, _ = mp.coefficients(x, derivatives=False)
         rs, rp = mp.residuals(cs, cp)
-        rr = prob.prior_residuals(x)
-        r = np.concatenate([rs, rp, rr])
-        return 0.5 * f_scale**2 * float(np.sum(_rho(r / f_scale, loss))), (rs, rp, rr), (cs, Js, cp, Jp)
+        total, weights, curv = 0.0, [], []
+        for r in (rs, rp, prob.prior_residuals(x)):
+            rho, w = _rho_and_weights(r / f_scale, loss)
+            total += rho
+            weights.append(w)
+            curv.append(_curvature_weights(r / f_scale, w, loss))
+        return 0.5 * f_scale**2 * total, weights, curv
 
-    cost, (rs, rp, rr), _ = robust_cost(x)
-    nfev += 1
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
         Jr[:, N_RIG:] = np.diag(1 / prob.prior_sigma[:prob.n_ranging])
         for j in prob.frozen:
             Jr[:, N_RIG + j] = 0.0
-    for _ in range(max_outer):
-        Ws = _irls_weights(rs / f_scale, loss)
-        Wp = _irls_weights(rp / f_scale, loss)
-        Wr = _irls_weights(rr / f_scale, loss)
-        Qs, Qp = mp.moments(Ws, Wp)
 
-        def quad(cs, cp, rr_, Qs=Qs, Qp=Qp, Wr=Wr):
-            return (float(np.sum(cs * (Qs @ cs[:, :, None])[:, :, 0]))
-                    + float(np.sum(cp * (Qp @ cp[:, :, None])[:, :, 0]))
-                    + float(np.sum(Wr * rr_ * rr_)))
+    def inner(x: np.ndarray, G: tuple, C: tuple, Wr: np.ndarray, Wr2: np.ndarray):
+        """Levenberg-Marquardt on the model ``sum (G c0) . (c - c0) + 1/2 (c - c0)^T C (c - c0)``
+        (+ the prior's) of the robust cost about ``x`` (``c0 = c(x)``; ``C = G``: the IRLS
+        quadratic). Returns the new ``x`` and the Gauss-Newton information."""
+        (Gs, Gp), (Cs, Cp) = G, C
+        cs0, _, cp0, _ = mp.coefficients(x, derivatives=False)
+        rr0 = prob.prior_residuals(x)
+        gs0 = np.einsum("gij,gj->gi", Gs, cs0)
+        gp0 = np.einsum("gij,gj->gi", Gp, cp0)
+        q_ref = float(np.sum(gs0 * cs0) + np.sum(gp0 * cp0) + np.sum(Wr * rr0 * rr0))
 
-        xi = x.copy()
-        cs, Js, cp, Jp = mp.coefficients(xi)
-        q = quad(cs, cp, rr)
-        lam = 1e-4
+        def model(cs, cp, rr_):
+            ds, dp, dr = cs - cs0, cp - cp0, rr_ - rr0
+            return (float(np.sum(gs0 * ds) + np.sum(gp0 * dp) + np.sum(Wr * rr0 * dr))
+                    + 0.5 * (float(np.einsum("gi,gij,gj->", ds, Cs, ds))
+                             + float(np.einsum("gi,gij,gj->", dp, Cp, dp))
+                             + float(np.sum(Wr2 * dr * dr))))
+
+        xi, m, lam, H = x.copy(), 0.0, 1e-4, None
         for it in range(max_inner):
-            if it:
-                cs, Js, cp, Jp = mp.coefficients(xi)
-            QJs, QJp = Qs @ Js, Qp @ Jp
-            H = (Js.reshape(-1, mp.n_par).T @ QJs.reshape(-1, mp.n_par)
-                 + Jp.reshape(-1, mp.n_par).T @ QJp.reshape(-1, mp.n_par) + (Jr.T * Wr) @ Jr)
-            g = (QJs.reshape(-1, mp.n_par).T @ cs.ravel() + QJp.reshape(-1, mp.n_par).T @ cp.ravel()
-                 + (Jr.T * Wr) @ prob.prior_residuals(xi))
+            cs, Js, cp, Jp = mp.coefficients(xi)
+            rri = prob.prior_residuals(xi)
+            CJs, CJp = Cs @ Js, Cp @ Jp
+            H = (Js.reshape(-1, mp.n_par).T @ CJs.reshape(-1, mp.n_par)
+                 + Jp.reshape(-1, mp.n_par).T @ CJp.reshape(-1, mp.n_par) + (Jr.T * Wr2) @ Jr)
+            g = (np.einsum("gki,gk->i", Js, gs0 + np.einsum("gij,gj->gi", Cs, cs - cs0))
+                 + np.einsum("gki,gk->i", Jp, gp0 + np.einsum("gij,gj->gi", Cp, cp - cp0))
+                 + Jr.T @ (Wr * rr0 + Wr2 * (rri - rr0)))
             D = _lm_scaling(H)
             while True:
                 step = _lm_step(H, g, lam, D)
-                if abs(float(g @ step)) <= inner_tol * max(q, 1e-300):
-                    step = None  # converged: the predicted decrease is below rounding
+                pred = abs(float(g @ step))
+                if it == 0:
+                    first = pred
+                # converged: the predicted decrease is below rounding, or a millionth of this
+                # pass's first (the weights change before that matters)
+                if pred <= max(inner_tol * max(q_ref, 1e-300), 1e-6 * first):
+                    step = None
                     break
                 c2 = mp.coefficients(xi + step, derivatives=False)
-                q2 = quad(c2[0], c2[2], prob.prior_residuals(xi + step))
-                if np.isfinite(q2) and q2 <= q:
+                m2 = model(c2[0], c2[2], prob.prior_residuals(xi + step))
+                if np.isfinite(m2) and m2 <= m:
                     break
                 lam *= 10.0
                 if lam > 1e10:
@@ -206,19 +310,132 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
             if step is None:
                 break
             xi = xi + step
-            done = q - q2 <= inner_tol * max(q, 1e-300)
-            q = q2
+            done = m - m2 <= 0.5 * inner_tol * max(q_ref, 1e-300)
+            m = m2
             lam = max(lam / 10.0, 1e-9)
             if done:
                 break
-        cn, (rs2, rp2, rr2), _ = robust_cost(xi)
+        return xi, H
+
+    cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2) = robust_cost(x)
+    nfev += 1
+    for _ in range(max_outer):
+        Q = mp.moments(Ws, Wp)
+        # Newton on the robust cost first (second-order weights); the IRLS step (a
+        # majoriser: never increases the cost) when that does not decrease it
+        xi, H = inner(x, Q, mp.moments(Ws2, Wp2), Wr, Wr2)
+        cn, W2, C2 = robust_cost(xi)
         nfev += 1
+        if not (np.isfinite(cn) and cn <= cost):
+            xi, H = inner(x, Q, Q, Wr, Wr)
+            cn, W2, C2 = robust_cost(xi)
+            nfev += 1
         if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
             status = -1 if status == 0 else status
             break
         done = cost - cn <= tol * max(cost, 1e-300)
-        x, cost, (rs, rp, rr) = xi, cn, (rs2, rp2, rr2)
+        x, cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2) = xi, cn, W2, C2
         if done:
             status = 1
             break
-    return LMResult(x, cost, nfev, status)
+        if near is not None and near.information is not None and cost >= near.cost:
+            dx = x - near.x
+            d2 = float(dx @ near.information @ dx)
+            # within three sigma, where the cost rises as its quadratic model says
+            if d2 <= 9.0 and abs((cost - near.cost) - 0.5 * d2) <= 0.25 * d2 + 1e-9 * cost:
+                status = 2
+                break
+    return LMResult(x, cost, nfev, status, H)
+
+
+def _group_cross(A: np.ndarray, B: np.ndarray, W: np.ndarray, cuts: np.ndarray) -> np.ndarray:
+    """``sum W a b^T`` over the rows of every group (rows sorted by group): (G, k, q)."""
+    out = np.zeros((len(cuts) - 1, A.shape[1], B.shape[1]))
+    Aw = A * W[:, None]
+    for g in range(len(cuts) - 1):
+        a, b = cuts[g], cuts[g + 1]
+        if b > a:
+            out[g] = Aw[a:b].T @ B[a:b]
+    return out
+
+
+def moments_covariance(prob: _Problem, loss: str, f_scale: float
+                       ) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`lidarcal.joint.solver._covariance` (planes held) from the group moments: exact,
+    O(positions) products instead of the ~1e5-row Jacobian.
+
+    At ``x = 0`` (the problem re-based at the solution) the robust weights ``W`` of the
+    whitened residuals give the group moments ``Q``; the information of the rig and
+    ranging terms is ``sum_g J_g^T Q_g J_g`` (+ the ranging prior's), with ``J_g = dc/dx``
+    of the group. The consider term needs the cross information with the board planes:
+    each residual's derivative wrt its board's (normal, d) is a row (scan: ``[X, -1]``,
+    ``X`` the point, eq. 28; stripe: ``s (z . P) / d [-P, 1]``, eq. 5), whitened like the
+    residuals, so ``J_x^T W J_b = sum_g J_g^T (sum W h~ db~^T) G_b`` (``G_b``: d(normal, d) /
+    d board pose). The cluster-robust scores of a position are ``sum_g J_g^T Q_g c_g``.
+    """
+    from .solver import _inverse
+
+    d = prob.data
+    n_rng = prob.n_ranging
+    x0 = np.zeros(N_RIG + n_rng)
+    mp = _MomentProblem(prob)
+    cs, Js, cp, Jp = mp.coefficients(x0)
+    rs, rp = mp.residuals(cs, cp)
+    rr = prob.prior_residuals(x0)
+    Ws, Wp, Wr = (_irls_weights(r / f_scale, loss) for r in (rs, rp, rr))
+    Qs, Qp = mp.moments(Ws, Wp)
+    Jr = np.zeros((n_rng, mp.n_par))
+    if n_rng:
+        Jr[:, N_RIG:] = np.diag(1 / prob.prior_sigma[:n_rng])
+        for j in prob.frozen:
+            Jr[:, N_RIG + j] = 0.0
+    Hx = (np.einsum("gki,gkl,glj->ij", Js, Qs, Js) + np.einsum("gki,gkl,glj->ij", Jp, Qp, Jp)
+          + (Jr.T * Wr) @ Jr)
+    # cross information with the board planes (consider term)
+    bR, bT = prob.base.board_R, prob.base.board_T
+    nb = bR[:, :, 2]
+    db = np.einsum("ij,ij->i", nb, bT)
+    R, T = _poses(*_rig(np.zeros(N_RIG), prob.base), prob.t)
+    p, b = d.scan_pos, d.scan_board
+    xy = prob.scan_xy(prob.base.ranging)
+    X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
+    Ds = prob.scan.whiten_columns(np.column_stack([X, -np.ones(len(p))])) * prob.scan.w[:, None]
+    p, b = d.stripe_pos, d.stripe_board
+    ray, s = d.stripe_rays, prob.scale_px[:, None]
+    rn = np.einsum("ij,ij->i", ray, nb[b])[:, None]
+    zr = np.einsum("ij,ij->i", R[p, :, 2], ray)[:, None]
+    Dp = np.column_stack([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn]) if len(p) \
+        else np.zeros((0, 4))
+    Dp = prob.stripe.whiten_columns(Dp) * prob.stripe.w[:, None]
+    Kx = (np.einsum("gki,gkj->gij", Js, _group_cross(mp.hs, Ds, Ws, mp.cuts_s))
+          + np.einsum("gki,gkj->gij", Jp, _group_cross(mp.hp, Dp, Wp, mp.cuts_p)))  # (G, n, 4)
+    Gb = prob.plane_derivatives(np.zeros(N_RIG + 2 * N_BOARD))
+    brd = np.arange(mp.n_groups) % 2
+    Hxb = np.concatenate([np.einsum("gij,jk->ik", Kx[brd == k], Gb[k]) for k in range(2)], 1)
+    # residual variance over every row (scan, stripe, prior and, when present, corners)
+    ss = (float(np.einsum("gi,gij,gj->", cs, Qs, cs)) + float(np.einsum("gi,gij,gj->", cp, Qp, cp))
+          + float(np.sum(Wr * rr * rr)))
+    m_used = len(rs) + len(rp) + n_rng
+    has_corners = d.corners_px is not None and d.object_points is not None
+    if has_corners:
+        rc = prob.corner_residuals(bR, bT) / prob.sigma_corner
+        wc = _irls_weights(rc / f_scale, loss)
+        ss += float(np.sum(wc * rc * rc))
+        m_used += len(rc)
+    s2 = max(ss / max(m_used - mp.n_par, 1), 1.0)
+    Hx_inv, null = _inverse(Hx)
+    # cluster-robust covariance: the scores of each position (its groups)
+    S = (np.einsum("gki,gk->gi", Js, np.einsum("gkl,gl->gk", Qs, cs))
+         + np.einsum("gki,gk->gi", Jp, np.einsum("gkl,gl->gk", Qp, cp)))
+    S = S.reshape(-1, 2, mp.n_par).sum(1)
+    G = int(np.count_nonzero(np.any(S != 0, axis=1)))
+    meat = S.T @ S * (G / max(G - 1, 1))
+    prob.sandwich = Hx_inv @ meat @ Hx_inv
+    C = Hx_inv
+    if has_corners:
+        Jc = prob.corner_jacobian(np.zeros(N_RIG + 2 * N_BOARD)) / prob.sigma_corner
+        Jc *= np.sqrt(wc)[:, None] * prob.sigma_corner / max(prob.sigma_corner, prob.corner_floor_px)
+        Pb, _ = _inverse(Jc.T @ Jc)
+        A = Hx_inv @ Hxb
+        C = C + A @ Pb @ A.T
+    return s2 * C, null, s2

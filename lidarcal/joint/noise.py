@@ -28,15 +28,7 @@ class _Groups:
         self.n_groups = 2 * n_pos
         self.board_of_group = np.arange(self.n_groups) % 2
         self.n = np.bincount(self.gid, minlength=self.n_groups).astype(float)
-        sc = np.zeros(len(pos))
-        order = np.argsort(self.gid, kind="stable")
-        cuts = np.searchsorted(self.gid[order], np.arange(self.n_groups + 1))
-        for g in np.flatnonzero(self.n >= 3):
-            m = order[cuts[g]:cuts[g + 1]]
-            q = coords[m] - coords[m].mean(0)
-            _, _, vt = np.linalg.svd(q, full_matrices=False)
-            sc[m] = q @ vt[0]
-        self.sc = sc
+        self.sc = _along(self.gid, np.asarray(coords, float), self.n, self.n_groups)
         # residuals come grouped (position by position, board 0 then 1): group sums of a
         # whole Jacobian are then one np.add.reduceat instead of a bincount per column
         self._sorted = bool(np.all(self.gid[1:] >= self.gid[:-1]))
@@ -78,13 +70,14 @@ class _Groups:
         self.g1 = 1 - np.sqrt(s2 / (s2 + self.ss * v1))
         self.sig_g = self.sigma[b]
 
-    def moments(self, r: np.ndarray, w: np.ndarray | None = None
+    def moments(self, r: np.ndarray, w: np.ndarray | None = None, counts: tuple | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Per-group mean and slope (least squares along ``s``) of ``r`` over the kept residuals."""
+        """Per-group mean and slope (least squares along ``s``) of ``r`` over the kept residuals
+        (or weights ``w``; ``counts``: their :meth:`_counts`, when known)."""
         if w is None:
             w, n, ss = self.w, self.n, self.ss
         else:
-            n, ss = self._counts(w)
+            n, ss = self._counts(w) if counts is None else counts
         m0 = np.bincount(self.gid, w * r, minlength=self.n_groups) / np.maximum(n, 1e-300)
         m1 = np.bincount(self.gid, w * r * self.sc, minlength=self.n_groups) / ss
         return m0, m1
@@ -139,8 +132,8 @@ class _Groups:
                 continue
             sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
         w = (np.abs(within) <= CLIP_SIGMAS * sig[self.board_of_group[g]]).astype(float)
-        a0, a1 = self.moments(r, w)
         n, ss = self._counts(w)
+        a0, a1 = self.moments(r, w, (n, ss))
         vg = [np.zeros(self.n_groups), np.zeros(self.n_groups)]
         for b in range(2):
             grp = (self.board_of_group == b) & (n >= 3)
@@ -159,3 +152,28 @@ class _Groups:
                                      - np.median(white)), 0.0)
                     out[grp] = np.maximum(v[b], a[grp] ** 2 - white)
         self.set(sig, v0, v1, vg[0], vg[1])
+
+
+def _along(gid: np.ndarray, coords: np.ndarray, n: np.ndarray, n_groups: int) -> np.ndarray:
+    """Centred coordinate of every point along its group's principal direction (the first
+    right singular vector of the group's centred 2D coordinates; sign arbitrary); 0 in
+    groups of fewer than 3 points.
+
+    All groups at once: the principal direction is the leading eigenvector of each
+    group's 2 x 2 scatter matrix.
+    """
+    sc = np.zeros(len(gid))
+    if len(gid) == 0:
+        return sc
+    nn = np.maximum(n, 1.0)
+    mean = np.stack([np.bincount(gid, coords[:, j], minlength=n_groups) / nn for j in range(2)], 1)
+    q = coords - mean[gid]
+    S = np.zeros((n_groups, 2, 2))
+    for i, j in ((0, 0), (0, 1), (1, 1)):
+        S[:, i, j] = np.bincount(gid, q[:, i] * q[:, j], minlength=n_groups)
+    S[:, 1, 0] = S[:, 0, 1]
+    _, V = np.linalg.eigh(S)
+    v = V[:, :, 1]  # eigenvalues ascending: the last is the principal direction
+    big = (n >= 3)[gid]
+    sc[big] = np.einsum("ij,ij->i", q[big], v[gid[big]])
+    return sc

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import copy
+import weakref
+
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..geometry import unit
 from .data import JointData
@@ -45,13 +49,12 @@ class _Problem:
                      else np.asarray(data.scan_dark, float))
         self.t = np.radians(data.psi_deg - psi_ref_deg)
         self.scale_px = np.ones(len(data.stripe_px))
-        n = data.n_positions
-        self.scan = _Groups(data.scan_pos, data.scan_board, data.scan_xy, n)
-        self.stripe = _Groups(data.stripe_pos, data.stripe_board, data.stripe_px, n)
+        self.scan, self.stripe = _groups(data)
         self.sigma_corner = 1.0
         self.corner_floor_px = 0.0
         self.sandwich: np.ndarray | None = None  # cluster-robust covariance (solver._covariance)
         self.frozen: tuple[int, ...] = ()  # ranging terms held at base.ranging (zero columns)
+        self._blocks_memo: tuple | None = None  # (key, (scan, stripe residuals)) of blocks()
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rig + boards part of ``x``, ranging terms (2,) in mm)."""
@@ -110,12 +113,22 @@ class _Problem:
 
     def blocks(self, x: np.ndarray, corners: bool = True
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Raw residuals: scan (mm), stripe (px), corners (px, x and y interleaved)."""
+        """Raw residuals: scan (mm), stripe (px), corners (px, x and y interleaved).
+
+        The scan and stripe residuals of the last call are kept: the noise estimate and the
+        rejection ask for the same ``x`` one after the other."""
         d = self.data
+        key = (np.asarray(x, float).tobytes(), self.t.tobytes(), self.base, self.scale_px,
+               self.dark)
         x, rv = self.split(x)
+        bR, bT = _boards(x, self.base)
+        memo = self._blocks_memo
+        if memo is not None and memo[0][:2] == key[:2] and all(
+                a is b for a, b in zip(memo[0][2:], key[2:])):
+            r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
+            return memo[1][0], memo[1][1], r_corner
         k, a, R_ref, T_ref = _rig(x, self.base)
         R, T = _poses(k, a, R_ref, T_ref, self.t)
-        bR, bT = _boards(x, self.base)
         n = bR[:, :, 2]
         dd = np.einsum("ij,ij->i", n, bT)
         # scan points (ranges corrected by the ranging model) in the camera frame, eq. (28),
@@ -125,12 +138,12 @@ class _Problem:
         X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
         r_scan = np.einsum("ij,ij->i", X, n[b]) - dd[b]
         # stripe centres back-projected onto their board (eq. 5), against the laser plane
-        p, b = d.stripe_pos, d.stripe_board
-        ray = d.stripe_rays
-        P = ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]
+        p = d.stripe_pos
+        P = _stripe_points(d, bR, bT, cache=not np.any(x[N_RIG:]))["P"]
         z = R[p, :, 2]
         r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.scale_px
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
+        self._blocks_memo = (key, (r_scan, r_stripe))
         return r_scan, r_stripe, r_corner
 
     def scan_xy(self, rv: np.ndarray) -> np.ndarray:
@@ -141,18 +154,8 @@ class _Problem:
 
     def pose_derivatives(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """R (N, 3, 3), T (N, 3) at the rig parameters ``x[:10]`` and d[R_x, R_y, R_z, T] /
-        d rig (N, 12, 10): the pose columns at every position, by central differences."""
-        R, T = _poses(*_rig(x, self.base), self.t)
-        h = _STEPS[:N_RIG]
-        G = np.zeros((len(self.t), 12, N_RIG))
-        for j in range(N_RIG):
-            dx = np.zeros(N_RIG)
-            dx[j] = h[j]
-            Rp, Tp = _poses(*_rig(x[:N_RIG] + dx, self.base), self.t)
-            Rm, Tm = _poses(*_rig(x[:N_RIG] - dx, self.base), self.t)
-            G[:, :, j] = (np.concatenate([Rp.transpose(0, 2, 1).reshape(-1, 9), Tp], 1)
-                          - np.concatenate([Rm.transpose(0, 2, 1).reshape(-1, 9), Tm], 1)) / (2 * h[j])
-        return R, T, G
+        d rig (N, 12, 10): the pose columns at every position (:func:`pose_jacobian`)."""
+        return pose_jacobian(x[:N_RIG], self.base, self.t)
 
     def jacobian(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
         """Jacobian of :meth:`normalised` wrt the full parameters (rig 10 + boards 12).
@@ -170,19 +173,7 @@ class _Problem:
         bR, bT = _boards(x, self.base)
         nb = bR[:, :, 2]
         db = np.einsum("ij,ij->i", nb, bT)
-        # d (normal, d) of both boards / d board parameters: (2, 4, 6)
-        Gb = np.zeros((2, 4, N_BOARD))
-        if n_main > N_RIG:
-            for j in range(N_BOARD):
-                for b in range(2):
-                    dx = np.zeros(n_main)
-                    i = N_RIG + b * N_BOARD + j
-                    dx[i] = _STEPS[i]
-                    Rp, Tp = _boards(x + dx, self.base)
-                    Rm, Tm = _boards(x - dx, self.base)
-                    fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
-                    fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
-                    Gb[b, :, j] = (fp - fm) / (2 * _STEPS[i])
+        Gb = self.plane_derivatives(x) if n_main > N_RIG else np.zeros((2, 4, N_BOARD))
         blocks = []
         # scan: r = n_b . (R_x x + R_y y + T) - d_b, (x, y) = (rho - offset - extra dark) u
         p, b = d.scan_pos, d.scan_board
@@ -231,15 +222,41 @@ class _Problem:
             for blk in blocks:
                 blk[:, n_main + j] = 0.0
         if use_corners:
-            m = len(self.corner_residuals(bR, bT))
-            Jc = np.zeros((m, n_par))
-            for i in range(N_RIG, n_main):
-                dx = np.zeros(n_main)
-                dx[i] = _STEPS[i]
-                Jc[:, i] = (self.corner_residuals(*_boards(x + dx, self.base))
-                            - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
+            Jc = np.zeros((len(self.corner_residuals(bR, bT)), n_par))
+            if n_main > N_RIG:
+                Jc[:, N_RIG:n_main] = self.corner_jacobian(x)
             blocks.append(Jc / self.sigma_corner)
         return np.vstack(blocks)
+
+    def plane_derivatives(self, x: np.ndarray) -> np.ndarray:
+        """d (normal, d) of both boards / d board parameters ``x[10:22]`` (2, 4, 6), central
+        differences."""
+        x = np.asarray(x[:N_RIG + 2 * N_BOARD], float)
+        Gb = np.zeros((2, 4, N_BOARD))
+        for j in range(N_BOARD):
+            for b in range(2):
+                dx = np.zeros(len(x))
+                i = N_RIG + b * N_BOARD + j
+                dx[i] = _STEPS[i]
+                Rp, Tp = _boards(x + dx, self.base)
+                Rm, Tm = _boards(x - dx, self.base)
+                fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
+                fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
+                Gb[b, :, j] = (fp - fm) / (2 * _STEPS[i])
+        return Gb
+
+    def corner_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """Corner reprojection residuals (px) / d board parameters ``x[10:22]`` (m, 12),
+        central differences."""
+        x = np.asarray(x[:N_RIG + 2 * N_BOARD], float)
+        m = len(self.corner_residuals(*_boards(x, self.base)))
+        Jc = np.zeros((m, 2 * N_BOARD))
+        for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+            dx = np.zeros(len(x))
+            dx[i] = _STEPS[i]
+            Jc[:, i - N_RIG] = (self.corner_residuals(*_boards(x + dx, self.base))
+                                - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
+        return Jc
 
     def corner_residuals(self, bR: np.ndarray, bT: np.ndarray) -> np.ndarray:
         d = self.data
@@ -270,23 +287,66 @@ class _Problem:
         k, a, R_ref, T_ref = _rig(x, self.base)
         R, _ = _poses(k, a, R_ref, T_ref, self.t)
         bR, bT = _boards(x, self.base)
-        n = bR[:, :, 2][d.stripe_board]
-        dd = np.einsum("ij,ij->i", bR[:, :, 2], bT)[d.stripe_board]
-        ray = d.stripe_rays
-        P = ray * (dd / np.einsum("ij,ij->i", ray, n))[:, None]
-        zL = R[d.stripe_pos, :, 2]
+        ent = _stripe_points(d, bR, bT, jacobian=True, cache=not np.any(x[N_RIG:]))
+        # per (position, board): the stripe's direction on the board and the direction
+        # perpendicular to it in the board
+        nb = bR[:, :, 2]
+        n = nb[np.tile([0, 1], len(self.t))]
+        zL = R[np.repeat(np.arange(len(self.t)), 2), :, 2]
         line = unit(np.cross(n, zL))  # stripe direction on the board
         u = unit(np.cross(n, line))  # in the board, perpendicular to the stripe
+        g = self.stripe.gid
+        Jt = ent["Jt"]
+        pu = np.einsum("mij,mj->mi", Jt, u[g])
+        pl = unit(np.einsum("mij,mj->mi", Jt, line[g]))
+        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
+        du = np.abs(np.einsum("ij,ij->i", zL, u))[g]  # mm of laser offset per mm along u
+        self.scale_px = perp / np.maximum(du, 1e-9)
+
+
+_STRIPE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_GROUPS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _groups(data: JointData) -> tuple[_Groups, _Groups]:
+    """Fresh noise models of the scan and the stripe residuals (:class:`_Groups`, white unit
+    noise, all kept): shallow copies of ones built once per :class:`JointData` (a
+    :class:`_Groups` replaces its arrays, never changes them in place)."""
+    proto = _GROUPS_CACHE.get(data)
+    if proto is None:
+        n = data.n_positions
+        proto = _GROUPS_CACHE[data] = (
+            _Groups(data.scan_pos, data.scan_board, data.scan_xy, n),
+            _Groups(data.stripe_pos, data.stripe_board, data.stripe_px, n))
+    return copy.copy(proto[0]), copy.copy(proto[1])
+
+
+def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bool = False,
+                   cache: bool = True) -> dict:
+    """Stripe centres back-projected onto their boards (eq. 5), ``P`` (S, 3), and with
+    ``jacobian`` d pixel / d P through the lens model, ``Jt`` (S, 2, 3).
+
+    Both depend on the board planes only: with the planes held (``cache``) they are
+    computed once per :class:`JointData` and board poses.
+    """
+    key = (bR.tobytes(), bT.tobytes())
+    per = _STRIPE_CACHE.setdefault(data, {}) if cache else {}
+    ent = per.get(key)
+    if ent is None:
+        if len(per) >= 4:
+            per.clear()
+        b, ray = data.stripe_board, data.stripe_rays
+        n = bR[:, :, 2]
+        dd = np.einsum("ij,ij->i", n, bT)
+        ent = per[key] = {"P": ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]}
+    if jacobian and "Jt" not in ent:
         # d pixel / d point through the lens model: cv2.projectPoints' Jacobian wrt the
         # translation (columns 3-5) is exactly that with a zero rotation
-        _, Jt = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                  np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float))
-        Jt = Jt[:, 3:6].reshape(-1, 2, 3)
-        pu = np.einsum("mij,mj->mi", Jt, u)
-        pl = unit(np.einsum("mij,mj->mi", Jt, line))
-        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
-        du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
-        self.scale_px = perp / np.maximum(du, 1e-9)
+        _, Jt = cv2.projectPoints(ent["P"].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                  np.asarray(data.camera.K, float),
+                                  np.asarray(data.camera.dist, float))
+        ent["Jt"] = Jt[:, 3:6].reshape(-1, 2, 3)
+    return ent
 
 
 def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -304,3 +364,80 @@ def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
         if b > a:
             out[a:b] = np.einsum("mi,ij->mj", dr[a:b], G[i])
     return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` of vectors ``v`` (..., 3): (..., 3, 3)."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def pose_jacobian(x: np.ndarray, base: _Base, t: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rigid model's poses at angles ``t`` and their derivatives wrt the rig parameters
+    (analytic): R (N, 3, 3), T (N, 3), G (N, 12, 10) with rows ``[R_x, R_y, R_z, T]``.
+
+    ``R = Q(t, k) R_ref``, ``T = a + Q (T_ref - a)`` with Rodrigues'
+    ``Q = cos t I + sin t [k]x + (1 - cos t) k k^T`` (:func:`lidarcal.joint.params._poses`):
+
+    * direction steps ``x[0:2]``: ``k = unit(k0 + x B)``, ``dk = (I - k k^T) B_i / |k0 + x B|``,
+      ``dQ = sin t [dk]x + (1 - cos t)(dk k^T + k dk^T)``; ``dR = dQ R_ref``,
+      ``dT = dQ (T_ref - a)``;
+    * axis point steps ``x[2:4]``: ``dT = (I - Q) B_i``;
+    * reference rotation vector ``w = x[4:7]`` (``R_ref = Exp(w) R0``):
+      ``dExp(w)/dw_j = [J_l(w) e_j]x Exp(w)`` with the left Jacobian of SO(3)
+      ``J_l = I + (1 - cos th)/th^2 [w]x + (th - sin th)/th^3 [w]x^2``;
+      ``dR = Q [J_l e_j]x R_ref``;
+    * reference centre steps ``x[7:10]``: ``dT = Q e_j``.
+    """
+    x = np.asarray(x, float)
+    k, a, R_ref, T_ref = _rig(x, base)
+    R, T = _poses(k, a, R_ref, T_ref, t)
+    n = len(t)
+    c, s = np.cos(t)[:, None, None], np.sin(t)[:, None, None]
+    kx = _skew(k)
+    Q = c * np.eye(3) + s * kx + (1 - c) * np.outer(k, k)
+    dR = np.zeros((n, N_RIG, 3, 3))
+    dT = np.zeros((n, N_RIG, 3))
+    # axis direction
+    k_raw = base.k + x[0:2] @ base.B
+    dk = (base.B - np.outer(base.B @ k, k)) / np.linalg.norm(k_raw)  # (2, 3)
+    dQ = (s[:, None] * _skew(dk)[None]
+          + (1 - c)[:, None] * (dk[:, :, None] * k[None, None, :] + k[None, :, None] * dk[:, None, :])[None])
+    dR[:, 0:2] = dQ @ R_ref
+    dT[:, 0:2] = dQ @ (T_ref - a)
+    # axis point
+    dT[:, 2:4] = np.einsum("ij,nkj->nik", base.B, np.eye(3) - Q)
+    # reference rotation
+    w = x[4:7]
+    th = float(np.linalg.norm(w))
+    W = _skew(w)
+    if th < 1e-6:
+        Jl = np.eye(3) + 0.5 * W + W @ W / 6.0
+    else:
+        Jl = np.eye(3) + (1 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
+    dR[:, 4:7] = Q[:, None] @ (_skew(Jl.T) @ R_ref)[None]
+    # reference centre
+    dT[:, 7:10] = Q.transpose(0, 2, 1)[:, :, :]
+    G = np.concatenate([dR.transpose(0, 1, 3, 2).reshape(n, N_RIG, 9), dT], 2).transpose(0, 2, 1)
+    return R, T, np.ascontiguousarray(G)
+
+
+def start_step(base: _Base, start: _Base) -> np.ndarray | None:
+    """Rig parameters (10) at which ``base``'s parametrisation gives the rig of ``start``
+    (another start of the fit), or None when its axis direction is more than 60 deg off
+    (``k = unit(k0 + x B)`` cannot reach it well).
+
+    Direction: ``k0 + x B`` parallel to ``k``; axis point: where ``start``'s axis meets the
+    plane through ``base.a`` perpendicular to ``k0``; rotation vector of ``R R0^T``; centre
+    step ``T - T0``.
+    """
+    c = float(start.k @ base.k)
+    if c < 0.5:
+        return None
+    foot = start.a + start.k * float((base.a - start.a) @ base.k) / c
+    w = Rotation.from_matrix(start.R @ base.R.T).as_rotvec()
+    return np.concatenate([(start.k / c) @ base.B.T, (foot - base.a) @ base.B.T, w,
+                           start.T - base.T])

@@ -17,7 +17,8 @@ class LMResult:
     x: np.ndarray
     cost: float
     nfev: int
-    status: int  # 1 converged, 0 iteration limit, -1 no decrease possible
+    status: int  # 1 converged, 0 iteration limit, -1 no decrease possible, 2 joined ``near``
+    information: np.ndarray | None = None  # Gauss-Newton information at x (moment solver)
 
 
 def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.0,
@@ -95,6 +96,32 @@ def _rho(z: np.ndarray, loss: str) -> np.ndarray:
     raise ValueError(f"unknown loss {loss!r}")
 
 
+def _rho_and_weights(z: np.ndarray, loss: str) -> tuple[float, np.ndarray]:
+    """``sum rho`` and the IRLS weights ``rho'`` of normalised residuals ``z`` in one go."""
+    if loss == "soft_l1":
+        t = np.sqrt(1 + z * z)
+        return 2 * float(np.sum(t)) - 2 * len(z), 1 / t
+    return float(np.sum(_rho(z, loss))), _irls_weights(z, loss)
+
+
+def _curvature_weights(z: np.ndarray, w: np.ndarray, loss: str) -> np.ndarray:
+    """``rho'(s) + 2 s rho''(s)`` at ``s = z^2`` (``w = rho'``): the second derivative of the
+    robust cost along a residual (Triggs et al. 2000, "Bundle adjustment", section 4.3),
+    floored at 0 (where the loss bends down, Gauss-Newton takes no curvature)."""
+    s = z * z
+    if loss == "linear":
+        return np.ones_like(s)
+    if loss == "soft_l1":
+        return w ** 3  # (1 + s)^(-3/2)
+    if loss == "huber":
+        return (s <= 1).astype(float)
+    if loss == "cauchy":
+        return np.maximum(1 - s, 0.0) * w * w
+    if loss == "arctan":
+        return np.maximum(1 - 3 * s * s, 0.0) * w * w
+    raise ValueError(f"unknown loss {loss!r}")
+
+
 def _irls_weights(z: np.ndarray, loss: str) -> np.ndarray:
     """rho'(s) at ``s = z^2``: the IRLS weight of each normalised residual."""
     s = z * z
@@ -123,7 +150,19 @@ def _covariance(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
                 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Covariance (10 + n_ranging, 10 + n_ranging) of the rig and ranging parameters, the
     unobservable directions (10 + n_ranging, q), s^2. The rig block is marginal over the
-    ranging terms: estimating them shows as larger rig sigmas."""
+    ranging terms: estimating them shows as larger rig sigmas. Planes held: from the
+    group moments (:func:`lidarcal.joint.moments.moments_covariance`)."""
+    if not fit_planes and prob.scan._sorted and prob.stripe._sorted:
+        from .moments import moments_covariance  # moments builds on this module
+
+        return moments_covariance(prob, loss, f_scale)
+    return _covariance_rows(prob, fit_planes, loss, f_scale)
+
+
+def _covariance_rows(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`_covariance` from the row-by-row Jacobian (with ``fit_planes``, or rows not
+    grouped; :func:`lidarcal.joint.moments.moments_covariance` is the same, faster)."""
     r, J = _jacobian(prob)
     n_main = len(r) - len(prob.corner_residuals(prob.base.board_R, prob.base.board_T))
     w = _irls_weights(r / f_scale, loss)

@@ -1,0 +1,162 @@
+"""The joint fit's fast forms against their direct ones: analytic pose derivatives
+(lidarcal.joint.problem.pose_jacobian) against central differences over random rigs and
+parameter steps (property test); the moment covariance, angle steps and solver against the
+row-by-row ones; the second start's step; the stripe rays from section 1."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lidarcal.joint.params import N_RIG, _Base, _poses, _rig
+from lidarcal.joint.problem import pose_jacobian
+
+
+def _columns(R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    return np.concatenate([R.transpose(0, 2, 1).reshape(-1, 9), T], 1)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_pose_jacobian_equals_central_differences(seed):
+    rng = np.random.default_rng(seed)
+    base = _Base.make(rng.normal(size=3), rng.normal(size=3) * 100,
+                      Rotation.random(random_state=seed).as_matrix(), rng.normal(size=3) * 300,
+                      np.zeros((2, 3, 3)), np.zeros((2, 3)))
+    # seed 0: a rotation step below the series threshold of the left Jacobian
+    w = rng.normal(size=3) * (1e-9 if seed == 0 else 0.3)
+    x = np.r_[rng.normal(size=2) * 0.1, rng.normal(size=2) * 10, w, rng.normal(size=3) * 10]
+    t = rng.uniform(-1.0, 1.0, 7)
+    R, T, G = pose_jacobian(x, base, t)
+    R0, T0 = _poses(*_rig(x, base), t)
+    assert np.allclose(R, R0) and np.allclose(T, T0)
+    h = 1e-6
+    for j in range(N_RIG):
+        dx = np.zeros(N_RIG)
+        dx[j] = h
+        num = (_columns(*_poses(*_rig(x + dx, base), t))
+               - _columns(*_poses(*_rig(x - dx, base), t))) / (2 * h)
+        # central differences: truncation ~h^2 |f'''|, rounding ~1e-16 |f| / h (|T| ~ 1e3 mm)
+        assert np.allclose(G[:, :, j], num, rtol=1e-6, atol=1e-6), j
+
+
+@pytest.fixture(scope="module")
+def noisy_problem():
+    """A held-planes joint problem of a small noisy simulated rig, set up as fit_joint does
+    (dark returns, stripe scales, correlated noise model, rejection)."""
+    from lidarcal.joint import joint_data
+    from lidarcal.joint.fit import _start_bases
+    from lidarcal.joint.params import N_BOARD
+    from lidarcal.joint.problem import _Problem
+    from lidarcal.ranging import RangingPrior
+    from lidarcal.study import StudySetting, simulate_rig
+
+    res = simulate_rig(21, StudySetting(n_positions=6)).result
+    data = joint_data(res, "pnp")
+    psi_ref = float(np.mean(data.psi_deg))
+    base = _start_bases([res.rigid_model], data, psi_ref)[0]
+    pr = RangingPrior()
+    prior = (np.array([pr.offset_mm, pr.dark_extra_mm]),
+             np.array([pr.offset_sigma_mm, pr.dark_extra_sigma_mm]))
+    prob = _Problem(data, base, psi_ref, 2, prior)
+    full = np.zeros(N_RIG + 2 * N_BOARD + 2)
+    prob.classify(full)
+    prob.set_stripe_scale(full)
+    prob.estimate_noise(np.zeros(N_RIG + 2), True)
+    prob.reject(full)
+    prob.corner_floor_px = 0.1
+    return prob
+
+
+def test_moment_covariance_equals_row_covariance(noisy_problem):
+    """The covariance from the group moments (rig, ranging, consider term, s^2, the
+    cluster-robust sandwich) is the row-by-row one, to rounding."""
+    from lidarcal.joint.moments import moments_covariance
+    from lidarcal.joint.solver import _covariance_rows
+
+    prob = noisy_problem
+    C0, null0, s20 = _covariance_rows(prob, False, "soft_l1", 2.5)
+    sw0 = prob.sandwich
+    C1, null1, s21 = moments_covariance(prob, "soft_l1", 2.5)
+    sig = np.sqrt(np.diag(C0))
+    assert np.all(np.isfinite(sig)) and null0.shape == null1.shape
+    assert np.allclose(C1 / np.outer(sig, sig), C0 / np.outer(sig, sig), rtol=0, atol=1e-8)
+    assert s21 == pytest.approx(s20, rel=1e-10)
+    ss = np.sqrt(np.diag(sw0))
+    assert np.allclose(prob.sandwich / np.outer(ss, ss), sw0 / np.outer(ss, ss), rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_start_step_reproduces_the_other_start(seed):
+    """A second start expressed as a step in the first start's parametrisation gives the
+    same pose function (axis line, reference pose) at every angle."""
+    from lidarcal.joint.problem import start_step
+
+    rng = np.random.default_rng(seed)
+    k0 = rng.normal(size=3)
+    k1 = k0 / np.linalg.norm(k0) + rng.normal(size=3) * 0.05  # a few degrees apart
+    z = (np.zeros((2, 3, 3)), np.zeros((2, 3)))
+    b0 = _Base.make(k0, rng.normal(size=3) * 100, Rotation.random(random_state=seed).as_matrix(),
+                    rng.normal(size=3) * 300, *z)
+    b1 = _Base.make(k1, b0.a + rng.normal(size=3) * 5,
+                    Rotation.from_rotvec(rng.normal(size=3) * 0.02).as_matrix() @ b0.R,
+                    b0.T + rng.normal(size=3) * 2, *z)
+    t = rng.uniform(-1.0, 1.0, 9)
+    R0, T0 = _poses(*_rig(start_step(b0, b1), b0), t)
+    R1, T1 = _poses(b1.k, b1.a, b1.R, b1.T, t)
+    assert np.allclose(R0, R1, atol=1e-12) and np.allclose(T0, T1, atol=1e-9)
+    flipped = _Base.make(-k0, b0.a, b0.R, b0.T, *z)
+    assert start_step(b0, flipped) is None
+
+
+def test_angle_steps_from_moments_equal_central_differences(noisy_problem, monkeypatch):
+    """Each position's angle step and its variance (the jitter test): the analytic moment
+    form equals one central difference of the angles on the rows."""
+    from lidarcal.joint import jitter
+
+    prob = noisy_problem
+    x = np.zeros(N_RIG + prob.n_ranging)
+    x[4:7] = [2e-4, -1e-4, 3e-4]  # off the optimum: steps and weights away from trivial
+    step, var = jitter._angle_steps(prob, x, "soft_l1", 2.5)
+    monkeypatch.setattr(jitter, "moments_usable", lambda *a: False)
+    step0, var0 = jitter._angle_steps(prob, x, "soft_l1", 2.5)
+    assert np.all(np.isfinite(var0)) and np.any(np.abs(step0) > 3 * np.sqrt(var0))
+    assert np.allclose(step, step0, rtol=0, atol=1e-6 * np.sqrt(var0).min())
+    assert np.allclose(var, var0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "huber", "cauchy"])
+def test_moment_solver_reaches_the_row_solver_optimum(noisy_problem, loss):
+    """On one problem (noise model held), the moment solver's Newton passes end at the
+    optimum of the row-by-row robust Levenberg-Marquardt: same robust cost, parameters
+    within a small fraction of a sigma (the information of the fit)."""
+    from lidarcal.joint import irls_lm
+    from lidarcal.joint.moments import irls_moments
+
+    prob = noisy_problem
+    x0 = np.zeros(N_RIG + prob.n_ranging)
+    x0[7:10] = [0.5, -0.3, 0.2]  # start half a millimetre off
+    a = irls_moments(prob, x0, loss, 2.5)
+    b = irls_lm(lambda v: prob.normalised(v, False), lambda v: prob.jacobian(v, False), x0,
+                loss, 2.5, max_iter=200)
+    assert a.status == 1 and b.status == 1
+    assert a.cost == pytest.approx(b.cost, rel=1e-9)
+    dx = a.x - b.x
+    assert float(dx @ a.information @ dx) < 1e-4  # below 0.01 sigma
+
+
+def test_stripe_rays_from_section1_points_equal_undistortion():
+    """The rays of the stripe centres taken from section 1's back-projected points are the
+    undistorted pixels' rays; points that do not belong to the pixels are not used."""
+    from lidarcal.camera import pixel_rays
+    from lidarcal.joint import joint_data
+    from lidarcal.joint.data import _stripe_rays
+    from lidarcal.study import StudySetting, simulate_rig
+
+    res = simulate_rig(22, StudySetting(n_positions=4)).result
+    d = joint_data(res, "pnp")
+    assert np.allclose(d.stripe_rays, pixel_rays(d.camera, d.stripe_px), rtol=0, atol=1e-14)
+    pts = d.stripe_rays * 500.0
+    shifted = np.roll(pts, 1, axis=0)  # one row off: a sample reprojects elsewhere
+    assert np.array_equal(_stripe_rays(d.camera, d.stripe_px, shifted),
+                          pixel_rays(d.camera, d.stripe_px))
