@@ -45,6 +45,7 @@ class _Problem:
                      else np.asarray(data.scan_dark, float))
         self.t = np.radians(data.psi_deg - psi_ref_deg)
         self.scale_px = np.ones(len(data.stripe_px))
+        self.scale_depth: np.ndarray | None = None  # depths (mm) scale_px holds at
         n = data.n_positions
         self.scan = _Groups(data.scan_pos, data.scan_board, data.scan_xy, n)
         self.stripe = _Groups(data.stripe_pos, data.stripe_board, data.stripe_px, n)
@@ -52,6 +53,9 @@ class _Problem:
         self.corner_floor_px = 0.0
         self.sandwich: np.ndarray | None = None  # cluster-robust covariance (solver._covariance)
         self.frozen: tuple[int, ...] = ()  # ranging terms held at base.ranging (zero columns)
+        # the board poses' prior (lidarcal.joint.planes_prior.PlanePrior): 12 pseudo-residuals
+        # after the ranging prior when the boards are parameters; None: no such rows
+        self.board_prior = None
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rig + boards part of ``x``, ranging terms (2,) in mm)."""
@@ -129,7 +133,7 @@ class _Problem:
         ray = d.stripe_rays
         P = ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]
         z = R[p, :, 2]
-        r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.scale_px
+        r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.stripe_scale(P)
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
         return r_scan, r_stripe, r_corner
 
@@ -208,16 +212,23 @@ class _Problem:
         blocks.append(self.scan.whiten_columns(Js) * self.scan.w[:, None])
         # stripe: r = s (P - T) . z,  P = ray d_b / (ray . n_b)
         p, b = d.stripe_pos, d.stripe_board
-        ray, s = d.stripe_rays, self.scale_px[:, None]
+        ray = d.stripe_rays
         rn = np.einsum("ij,ij->i", ray, nb[b])[:, None]
         P = ray * (db[b][:, None] / rn)
+        s = self.stripe_scale(P)[:, None]
         z = R[p, :, 2]
         dr = np.concatenate([np.zeros((len(p), 6)), (P - T[p]) * s, -z * s], 1)
         Jp = np.zeros((len(p), n_par))
         Jp[:, :N_RIG] = _rows_times(dr, G, p)
         if n_main > N_RIG:
-            zr = np.einsum("ij,ij->i", z, ray)[:, None]
-            drb = np.concatenate([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn], 1)
+            if self.scale_depth is None:  # pixels per mm held
+                zr = np.einsum("ij,ij->i", z, ray)[:, None]
+                drb = np.concatenate([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn], 1)
+            else:  # r = (s0 Z0 / ray_z) (ray . z - (T . z) (ray . n) / d): pixels
+                s0 = (self.scale_px * self.scale_depth / ray[:, 2])[:, None]
+                tz = np.einsum("ij,ij->i", T[p], z)[:, None]
+                dd_ = db[b][:, None]
+                drb = np.concatenate([-s0 * tz * ray / dd_, s0 * tz * rn / dd_**2], 1)
             for bb in range(2):
                 m = b == bb
                 c = N_RIG + bb * N_BOARD
@@ -230,6 +241,8 @@ class _Problem:
         for j in self.frozen:  # held terms: no column (the step leaves them)
             for blk in blocks:
                 blk[:, n_main + j] = 0.0
+        if self.board_prior is not None and n_main > N_RIG:
+            blocks.append(self._board_prior_jacobian(x, n_par))
         if use_corners:
             m = len(self.corner_residuals(bR, bT))
             Jc = np.zeros((m, n_par))
@@ -256,10 +269,37 @@ class _Problem:
     def normalised(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
         r = self.blocks(x, corners=use_corners)
         parts = [self.scan.whiten(r[0]) * self.scan.w, self.stripe.whiten(r[1]) * self.stripe.w,
-                 self.prior_residuals(x)]
+                 self.prior_residuals(x), self.board_prior_residuals(x)]
         if use_corners:
             parts.append(r[2] / self.sigma_corner)
         return np.concatenate(parts)
+
+    def board_prior_residuals(self, x: np.ndarray) -> np.ndarray:
+        """The board poses' whitened prior residuals (12,) when the boards are parameters and
+        ``board_prior`` is set (:mod:`lidarcal.joint.planes_prior`), else none."""
+        xm, _ = self.split(x)
+        if self.board_prior is None or len(xm) <= N_RIG:
+            return np.zeros(0)
+        return self.board_prior.residuals(*_boards(xm, self.base))
+
+    def _board_prior_jacobian(self, xm: np.ndarray, n_par: int) -> np.ndarray:
+        """Rows (12, n_par) of :meth:`board_prior_residuals` (central differences)."""
+        J = np.zeros((2 * N_BOARD, n_par))
+        for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+            dx = np.zeros(len(xm))
+            dx[i] = _STEPS[i]
+            J[:, i] = (self.board_prior.residuals(*_boards(xm + dx, self.base))
+                       - self.board_prior.residuals(*_boards(xm - dx, self.base))) / (2 * _STEPS[i])
+        return J
+
+    def stripe_scale(self, P: np.ndarray) -> np.ndarray:
+        """Pixels per mm of each stripe centre's laser offset with its board point at ``P``:
+        ``scale_px`` scaled by the depth it was computed at over ``P``'s (an image scale goes as
+        1 / depth), so a stripe residual stays in pixels when the planes move (scaling the
+        whole scene about the camera centre leaves every stripe residual as it is)."""
+        if self.scale_depth is None:
+            return self.scale_px
+        return self.scale_px * self.scale_depth / P[:, 2]
 
     def set_stripe_scale(self, x: np.ndarray) -> None:
         """Pixels of stripe displacement (perpendicular to the imaged stripe) per mm of laser offset."""
@@ -287,6 +327,7 @@ class _Problem:
         perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
         du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
         self.scale_px = perp / np.maximum(du, 1e-9)
+        self.scale_depth = P[:, 2].copy()  # the depths it holds at (stripe_scale)
 
 
 def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
