@@ -221,6 +221,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
             "status": int(sol.status), "start": best, "fit_planes": fit_planes,
             "plane_prior": plane_prior,
+            "plane_prior_chi2": float(np.sum(prob.board_prior_residuals(
+                np.zeros(N_RIG + 2 * N_BOARD + n_rng)) ** 2)),
             "residuals": {"scan_mm": rs, "stripe_px": rp, "corner_px": rc},
             "board_planes": tuple(Plane.from_normal_point(bR[j][:, 2], bT[j]) for j in range(2)),
             "n_scan": len(rs), "n_stripe": len(rp), "stripes": len(data.stripe_px) > 0,
