@@ -213,6 +213,10 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     jitter_deg = float(jit["sigma_deg"]) if applied else 0.0
     model = JointModel(axis, psi_ref, base.R, base.T, cov, noise)
     warn = joint_warnings(data, model, null)
+    shift_chi2 = None
+    if fit_planes:
+        shift_chi2, w = _plane_shift(data, plane_prior, bR, bT, corner_floor_px)
+        warn += w
     rmodel = None
     if n_rng:
         rmodel, rwarn = _ranging_model(rv, _ranging_sigmas(cov_all, prob.sandwich, rv, prob.dark), n_rng,
@@ -221,8 +225,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     info = {"null": null, "residual_variance": s2, "cost": float(sol.cost), "nfev": int(sol.nfev),
             "status": int(sol.status), "start": best, "fit_planes": fit_planes,
             "plane_prior": plane_prior,
-            "plane_prior_chi2": float(np.sum(prob.board_prior_residuals(
-                np.zeros(N_RIG + 2 * N_BOARD + n_rng)) ** 2)),
+            "plane_shift_chi2": shift_chi2,
             "residuals": {"scan_mm": rs, "stripe_px": rp, "corner_px": rc},
             "board_planes": tuple(Plane.from_normal_point(bR[j][:, 2], bT[j]) for j in range(2)),
             "n_scan": len(rs), "n_stripe": len(rp), "stripes": len(data.stripe_px) > 0,
@@ -232,6 +235,31 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             "ranging_rig_covariance": cov_all[N_RIG:, :N_RIG]}
     return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
                       jitter_deg, corrections, rmodel)
+
+
+def _plane_shift(data: JointData, plane_prior: PlanePrior | None, bR: np.ndarray,
+                 bT: np.ndarray, floor_px: float) -> tuple[float | None, list[str]]:
+    """How far the fit moved the board poses from the camera's estimate: ``|L (p - p0)|^2``
+    under the plane prior (:mod:`lidarcal.joint.planes_prior`; the corners' floored covariance
+    when the corners entered instead), chi-square with 12 dof; a warning beyond
+    ``PLANE_SHIFT_CHI2`` (the scans and stripes disagree with the board image or the
+    camera)."""
+    from .planes_prior import PLANE_SHIFT_CHI2, plane_prior_of
+
+    if plane_prior is None:
+        if data.corners_px is None or data.object_points is None:
+            return None, []
+        plane_prior = plane_prior_of(data, None, floor_px)
+    chi2 = float(np.sum(plane_prior.residuals(bR, bT) ** 2))
+    if chi2 <= PLANE_SHIFT_CHI2:
+        return chi2, []
+    sig = plane_prior.sigmas()
+    return chi2, [(f"the fit moved the board planes far from the camera's estimate (chi-square "
+                  f"{chi2:.0f} on 12 dof, expected below {PLANE_SHIFT_CHI2:.0f}; prior 1-sigma "
+                  f"normal {sig['normal_deg'][0]:.3f}/{sig['normal_deg'][1]:.3f} deg, offset "
+                  f"{sig['offset_mm'][0]:.2f}/{sig['offset_mm'][1]:.2f} mm): board.png or the "
+                  "camera's intrinsics disagree with the scans and stripes; check the board "
+                  "detection and the camera, or fit with fit_planes=False")]
 
 
 def _ranging_sigmas(cov_all: np.ndarray, sandwich: np.ndarray | None, rv: np.ndarray,
