@@ -15,8 +15,8 @@ Unknowns (minimal parametrisation, 10 + optionally 12):
 axis direction ``k`` (2: a step in the plane perpendicular to the start
 direction, then normalised), axis point ``a`` (2: a step perpendicular to
 ``k``; the position along the axis is a gauge), the LiDAR pose at the
-reference angle (rotation vector 3 and centre 3); with ``fit_planes`` the two
-board poses (3 + 3 each); with ``ranging`` (default) the LiDAR's range offset
+reference angle (rotation vector 3 and centre 3); with ``fit_planes`` the two board poses (3 + 3 each);
+with ``ranging`` (default) the LiDAR's range offset
 and, when the returns from black squares can be told, their extra range
 (:mod:`lidarcal.ranging`; a prior from dataset.json or a wide default enters as
 one more observation each; the rig covariance is marginal over them).
@@ -31,9 +31,32 @@ Residuals:
   z = 0 plane): the distance in mm times the local image scale (pixels of
   stripe displacement, perpendicular to the imaged stripe, per mm of laser-
   plane offset, through the lens model), i.e. the pixel distance from the
-  centre to the predicted stripe curve;
+  centre to the predicted stripe curve. The scale goes as 1 / depth of the board
+  point, so the residual stays in pixels when the planes move: scaling planes and
+  LiDAR about the camera centre leaves the image, and every stripe residual, as it
+  is (a scale held at the start planes would let the fit shrink the scene toward the
+  camera to shrink the stripe residuals);
 * corners (only with ``fit_planes``): reprojection of the chessboard corners
-  of both boards through the lens model (pixels).
+  of both boards through the lens model (pixels); or instead, with
+  ``plane_prior``, the camera's board poses as a Gaussian prior with their full
+  covariance (corners floored at ``CORNER_FLOOR_PX``, plus the intrinsics'
+  uncertainty when the camera was calibrated from photos,
+  :mod:`lidarcal.joint.planes_prior`).
+
+Board planes: one image (``board.png``) gives them; on a wide rig (few pixels per
+mm, camera calibrated from photos) they limit the pose function, and the scans and
+stripes of all positions correct them (rendered wide rigs, seeds 37, 39, 1, 5, 7, 40
+positions: pose function's mean centre error 0.17 / 0.29 / 0.13 / 0.27 / 0.36 mm held
+-> 0.15 / 0.19 / 0.13 / 0.28 / 0.32 mm fitted); on the paper and harsh rigs the change
+is within the spread (bundled 0.086 -> 0.092, seed 11 0.097 -> 0.096, harsh 61
+0.042 -> 0.033 mm), but the row-wise solver it needs costs several times the held
+fit's, so the planes are held by default (``lidarcal calibrate --fit-planes`` frees
+them). The fit then checks how far it moved the planes (chi-square of the
+shift under the camera's floored covariance, 12 dof) and warns beyond its 99.9 % point.
+``plane_prior`` lets the data move the planes further (looser, floored covariance):
+better with an exact camera on the wide rig (0.11 -> 0.09 mm) but, with a camera from
+photos, the scans' and stripes' own systematic errors then move the planes
+(0.15 -> 0.46 mm on wide seed 37): it is not the default.
 
 Noise model (every scale estimated from the data, never a constant): per board,
 white noise (1.4826 x median absolute residual) plus, per scan segment and
@@ -60,8 +83,10 @@ The segment <-> board assignment of each position is the one the single-shot
 solution chose (``pose.info["pairs"]``: camera board ``k`` <-> scan segment
 ``pairs[k]``).
 
-Covariance: ``s^2 (J^T W J)^-1`` with ``W`` the robust loss's IRLS weights and
-``s^2 >= 1`` the weighted residual variance. With ``fit_planes=False`` the
+Covariance: ``s^2 (J^T W J)^-1`` with ``W`` the robust loss's IRLS weights (1 for
+prior pseudo-observations) and ``s^2 >= 1`` the weighted residual variance; with
+``fit_planes`` the corner rows' information assumes at least ``CORNER_FLOOR_PX``
+per coordinate. With ``fit_planes=False`` the
 board planes are held (default: the ``cv2.solvePnP`` poses, the corners' ML
 estimate); their uncertainty is propagated into the rig parameters as a
 "consider" covariance, ``A P A^T`` with ``A = (J_x^T J_x)^-1 J_x^T J_b``. Corner
@@ -70,7 +95,7 @@ reprojection residuals understate the plane error; the planes' information
 assumes at least ``CORNER_FLOOR_PX`` per corner coordinate. The camera
 intrinsics are taken as exact.
 
-Solver (planes held, the default): :func:`lidarcal.joint.moments.irls_moments`.
+Solver (planes held): :func:`lidarcal.joint.moments.irls_moments`.
 Every residual is linear in a short homogeneous vector of its observation with
 coefficients that depend on the parameters per (position, board) only, and the
 correlated-noise whitening is linear too: with the robust weights held, a
@@ -82,7 +107,7 @@ parameters are analytic (:func:`lidarcal.joint.problem.pose_jacobian`); the
 covariance above and the jitter test's angle steps come from the same moments
 (exact). ``solver="lm"``: :func:`irls_lm`, the same
 optimum row by row (Levenberg-Marquardt on the (n, n) normal equations,
-weights updated every iteration; also used with ``fit_planes``);
+weights updated every iteration; used with ``fit_planes``);
 ``solver="scipy"``: ``scipy.optimize.least_squares`` (dense SVD of the ~1e5 x n
 Jacobian each iteration, slow).
 

@@ -401,11 +401,9 @@ def moments_covariance(prob: _Problem, loss: str, f_scale: float
     X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
     Ds = prob.scan.whiten_columns(np.column_stack([X, -np.ones(len(p))])) * prob.scan.w[:, None]
     p, b = d.stripe_pos, d.stripe_board
-    ray, s = d.stripe_rays, prob.scale_px[:, None]
-    rn = np.einsum("ij,ij->i", ray, nb[b])[:, None]
-    zr = np.einsum("ij,ij->i", R[p, :, 2], ray)[:, None]
-    Dp = np.column_stack([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn]) if len(p) \
-        else np.zeros((0, 4))
+    rn = np.einsum("ij,ij->i", d.stripe_rays, nb[b])[:, None]
+    Dp = (prob.stripe_plane_rows(rn, db[b][:, None], R[p, :, 2], T[p]) if len(p)
+          else np.zeros((0, 4)))
     Dp = prob.stripe.whiten_columns(Dp) * prob.stripe.w[:, None]
     Kx = (np.einsum("gki,gkj->gij", Js, _group_cross(mp.hs, Ds, Ws, mp.cuts_s))
           + np.einsum("gki,gkj->gij", Jp, _group_cross(mp.hp, Dp, Wp, mp.cuts_p)))  # (G, n, 4)

@@ -49,12 +49,16 @@ class _Problem:
                      else np.asarray(data.scan_dark, float))
         self.t = np.radians(data.psi_deg - psi_ref_deg)
         self.scale_px = np.ones(len(data.stripe_px))
+        self.scale_depth: np.ndarray | None = None  # depths (mm) scale_px holds at
         self.scan, self.stripe = _groups(data)
         self.sigma_corner = 1.0
         self.corner_floor_px = 0.0
         self.sandwich: np.ndarray | None = None  # cluster-robust covariance (solver._covariance)
         self.frozen: tuple[int, ...] = ()  # ranging terms held at base.ranging (zero columns)
         self._blocks_memo: tuple | None = None  # (key, (scan, stripe residuals)) of blocks()
+        # the board poses' prior (lidarcal.joint.planes_prior.PlanePrior): 12 pseudo-residuals
+        # after the ranging prior when the boards are parameters; None: no such rows
+        self.board_prior = None
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rig + boards part of ``x``, ranging terms (2,) in mm)."""
@@ -141,7 +145,7 @@ class _Problem:
         p = d.stripe_pos
         P = _stripe_points(d, bR, bT, cache=not np.any(x[N_RIG:]))["P"]
         z = R[p, :, 2]
-        r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.scale_px
+        r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.stripe_scale(P)
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
         self._blocks_memo = (key, (r_scan, r_stripe))
         return r_scan, r_stripe, r_corner
@@ -199,16 +203,16 @@ class _Problem:
         blocks.append(self.scan.whiten_columns(Js) * self.scan.w[:, None])
         # stripe: r = s (P - T) . z,  P = ray d_b / (ray . n_b)
         p, b = d.stripe_pos, d.stripe_board
-        ray, s = d.stripe_rays, self.scale_px[:, None]
+        ray = d.stripe_rays
         rn = np.einsum("ij,ij->i", ray, nb[b])[:, None]
         P = ray * (db[b][:, None] / rn)
+        s = self.stripe_scale(P)[:, None]
         z = R[p, :, 2]
         dr = np.concatenate([np.zeros((len(p), 6)), (P - T[p]) * s, -z * s], 1)
         Jp = np.zeros((len(p), n_par))
         Jp[:, :N_RIG] = _rows_times(dr, G, p)
         if n_main > N_RIG:
-            zr = np.einsum("ij,ij->i", z, ray)[:, None]
-            drb = np.concatenate([-s * zr * db[b][:, None] * ray / rn**2, s * zr / rn], 1)
+            drb = self.stripe_plane_rows(rn, db[b][:, None], z, T[p])
             for bb in range(2):
                 m = b == bb
                 c = N_RIG + bb * N_BOARD
@@ -221,6 +225,8 @@ class _Problem:
         for j in self.frozen:  # held terms: no column (the step leaves them)
             for blk in blocks:
                 blk[:, n_main + j] = 0.0
+        if self.board_prior is not None and n_main > N_RIG:
+            blocks.append(self._board_prior_jacobian(x, n_par))
         if use_corners:
             Jc = np.zeros((len(self.corner_residuals(bR, bT)), n_par))
             if n_main > N_RIG:
@@ -273,10 +279,55 @@ class _Problem:
     def normalised(self, x: np.ndarray, use_corners: bool) -> np.ndarray:
         r = self.blocks(x, corners=use_corners)
         parts = [self.scan.whiten(r[0]) * self.scan.w, self.stripe.whiten(r[1]) * self.stripe.w,
-                 self.prior_residuals(x)]
+                 self.prior_residuals(x), self.board_prior_residuals(x)]
         if use_corners:
             parts.append(r[2] / self.sigma_corner)
         return np.concatenate(parts)
+
+    def board_prior_residuals(self, x: np.ndarray) -> np.ndarray:
+        """The board poses' whitened prior residuals (12,) when the boards are parameters and
+        ``board_prior`` is set (:mod:`lidarcal.joint.planes_prior`), else none."""
+        xm, _ = self.split(x)
+        if self.board_prior is None or len(xm) <= N_RIG:
+            return np.zeros(0)
+        return self.board_prior.residuals(*_boards(xm, self.base))
+
+    def _board_prior_jacobian(self, xm: np.ndarray, n_par: int) -> np.ndarray:
+        """Rows (12, n_par) of :meth:`board_prior_residuals` (central differences)."""
+        J = np.zeros((2 * N_BOARD, n_par))
+        for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+            dx = np.zeros(len(xm))
+            dx[i] = _STEPS[i]
+            J[:, i] = (self.board_prior.residuals(*_boards(xm + dx, self.base))
+                       - self.board_prior.residuals(*_boards(xm - dx, self.base))) / (2 * _STEPS[i])
+        return J
+
+    def stripe_plane_rows(self, rn: np.ndarray, db: np.ndarray, z: np.ndarray, Tp: np.ndarray
+                          ) -> np.ndarray:
+        """d stripe residual / d (normal, d) of its board (S, 4), eq. (5) back-projection:
+        ``rn`` = ray . n and ``db`` = d of the board (S, 1), ``z`` the LiDAR's z axis and
+        ``Tp`` its centre at each centre's position (S, 3).
+
+        With the scale held (``scale_depth`` None) ``r = s (ray d / rn - T) . z``; with it
+        going as 1 / depth (:meth:`stripe_scale`) ``r = (s0 Z0 / ray_z) (ray . z - (T . z)
+        rn / d)``, in pixels."""
+        ray = self.data.stripe_rays
+        if self.scale_depth is None:
+            s = self.scale_px[:, None]
+            zr = np.einsum("ij,ij->i", z, ray)[:, None]
+            return np.concatenate([-s * zr * db * ray / rn**2, s * zr / rn], 1)
+        s0 = (self.scale_px * self.scale_depth / ray[:, 2])[:, None]
+        tz = np.einsum("ij,ij->i", Tp, z)[:, None]
+        return np.concatenate([-s0 * tz * ray / db, s0 * tz * rn / db**2], 1)
+
+    def stripe_scale(self, P: np.ndarray) -> np.ndarray:
+        """Pixels per mm of each stripe centre's laser offset with its board point at ``P``:
+        ``scale_px`` scaled by the depth it was computed at over ``P``'s (an image scale goes as
+        1 / depth), so a stripe residual stays in pixels when the planes move (scaling the
+        whole scene about the camera centre leaves every stripe residual as it is)."""
+        if self.scale_depth is None:
+            return self.scale_px
+        return self.scale_px * self.scale_depth / P[:, 2]
 
     def set_stripe_scale(self, x: np.ndarray) -> None:
         """Pixels of stripe displacement (perpendicular to the imaged stripe) per mm of laser offset."""
@@ -302,6 +353,7 @@ class _Problem:
         perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
         du = np.abs(np.einsum("ij,ij->i", zL, u))[g]  # mm of laser offset per mm along u
         self.scale_px = perp / np.maximum(du, 1e-9)
+        self.scale_depth = ent["P"][:, 2].copy()  # the depths it holds at (stripe_scale)
 
 
 _STRIPE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

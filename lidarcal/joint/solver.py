@@ -22,7 +22,7 @@ class LMResult:
 
 
 def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.0,
-            max_iter: int = 60, ftol: float = 1e-12) -> LMResult:
+            max_iter: int = 60, ftol: float = 1e-12, n_plain: int = 0) -> LMResult:
     """Robust Levenberg-Marquardt on the normal equations (iteratively reweighted).
 
     Minimises ``sum f_scale^2 rho((r / f_scale)^2)`` (scipy's loss definitions):
@@ -31,15 +31,19 @@ def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.
     cost drops. Equivalent to ``least_squares(..., loss=...)`` at the optimum,
     but works on the small (n, n) system: with ~1e5 residuals and ~10
     parameters it avoids the dense SVD of the Jacobian that ``method="trf"``
-    repeats every iteration.
+    repeats every iteration. The last ``n_plain`` residuals are Gaussian prior
+    terms: plain squares, never down-weighted (a robust loss would let the data
+    override a prior by any number of its sigmas).
     """
     x = np.asarray(x0, dtype=float).copy()
     r = fun(x)
-    cost = 0.5 * f_scale**2 * float(np.sum(_rho(r / f_scale, loss)))
+    cost = _robust_cost(r, loss, f_scale, n_plain)
     lam, nfev, status = 1e-4, 1, 0
     for _ in range(max_iter):
         J = jac(x)
         w = _irls_weights(r / f_scale, loss)
+        if n_plain:
+            w[len(w) - n_plain:] = 1.0
         Jw = J * w[:, None]
         H = _mm(Jw.T, J)
         g = _mm(Jw.T, r[:, None])[:, 0]
@@ -48,7 +52,7 @@ def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.
             step = _lm_step(H, g, lam, D)
             rn = fun(x + step)
             nfev += 1
-            cn = 0.5 * f_scale**2 * float(np.sum(_rho(rn / f_scale, loss)))
+            cn = _robust_cost(rn, loss, f_scale, n_plain)
             if np.isfinite(cn) and cn <= cost:
                 break
             lam *= 10.0
@@ -63,6 +67,13 @@ def irls_lm(fun, jac, x0: np.ndarray, loss: str = "soft_l1", f_scale: float = 1.
             status = 1
             break
     return LMResult(x, cost, nfev, status)
+
+
+def _robust_cost(r: np.ndarray, loss: str, f_scale: float, n_plain: int = 0) -> float:
+    """scipy's robust cost ``0.5 f^2 sum rho((r/f)^2)``, the last ``n_plain`` terms plain squares."""
+    m = len(r) - n_plain
+    return (0.5 * f_scale**2 * float(np.sum(_rho(r[:m] / f_scale, loss)))
+            + 0.5 * float(np.sum(r[m:] ** 2)))
 
 
 def _lm_scaling(H: np.ndarray) -> np.ndarray:
@@ -166,6 +177,8 @@ def _covariance_rows(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
     r, J = _jacobian(prob)
     n_main = len(r) - len(prob.corner_residuals(prob.base.board_R, prob.base.board_T))
     w = _irls_weights(r / f_scale, loss)
+    n_plain = len(prob.board_prior_residuals(np.zeros(J.shape[1])))  # Gaussian prior rows
+    w[n_main - n_plain:n_main] = 1.0
     Jw = J * np.sqrt(w)[:, None]
     has_corners = prob.data.corners_px is not None and prob.data.object_points is not None
     m_used = len(r) if (fit_planes or has_corners) else n_main
