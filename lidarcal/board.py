@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from .camera import corner_outliers, detect_chessboard, project_points, undistort_pixels
+from .camera import detect_chessboard, project_points, sb_accuracy_corners, undistort_pixels
 from .geometry import MAD_TO_SIGMA, Plane, as_points, nearest_rotation
 from .io.dataset import BoardSpec, CameraModel
 
@@ -377,31 +377,6 @@ def find_v_boards(image: np.ndarray, board: BoardSpec,
     return out[0], out[1]
 
 
-def sb_accuracy_corners(gray: np.ndarray, corners: np.ndarray, board: BoardSpec
-                        ) -> np.ndarray | None:
-    """The same board's corners by ``cv2.findChessboardCornersSB`` with ``CALIB_CB_ACCURACY``
-    (its own sub-pixel model on an upsampled image), searched in a crop one square beyond
-    ``corners`` and put in their order; None when not found, not the same corners (each
-    within a fifth of a square of one of ``corners``) or off the board's smooth grid
-    (:func:`lidarcal.camera.corner_outliers`)."""
-    c = np.asarray(corners, float)
-    side = _mean_square_px(c, board)
-    H, W = gray.shape[:2]
-    x0, y0 = (np.floor(c.min(0) - 1.5 * side)).astype(int).clip(0)
-    x1, y1 = np.minimum(np.ceil(c.max(0) + 1.5 * side).astype(int) + 1, [W, H])
-    ok, sb = cv2.findChessboardCornersSB(np.ascontiguousarray(gray[y0:y1, x0:x1]),
-                                         board.pattern_size, flags=cv2.CALIB_CB_ACCURACY)
-    if not ok or sb is None:
-        return None
-    sb = sb.reshape(-1, 2).astype(float) + [x0, y0]
-    d = np.linalg.norm(c[:, None] - sb[None], axis=2)
-    near = np.argmin(d, axis=1)
-    if len(np.unique(near)) != len(c) or np.max(d[np.arange(len(c)), near]) > 0.2 * side:
-        return None
-    sb = sb[near]
-    return None if corner_outliers(sb, board.pattern_size).any() else sb
-
-
 def sharpest_corners(gray: np.ndarray, corners: np.ndarray, board: BoardSpec,
                      camera: CameraModel) -> np.ndarray:
     """Of :func:`lidarcal.camera.detect_chessboard`'s corners and OpenCV's SB detector in its
@@ -410,7 +385,7 @@ def sharpest_corners(gray: np.ndarray, corners: np.ndarray, board: BoardSpec,
     for both, so the RMS compares the corners' noise). Neither is better everywhere:
     measured against truth, on the rendered wide rig's intrinsics photos (seed 37) the
     first is 0.035 px rms and SB 0.057 px; on its board.png 0.064 against 0.043 px."""
-    alt = sb_accuracy_corners(gray, corners, board)
+    alt = sb_accuracy_corners(gray, corners, board.pattern_size)
     if alt is None:
         return corners
     obj = board.object_points()

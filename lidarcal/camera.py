@@ -293,6 +293,32 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     return out
 
 
+def sb_accuracy_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[int, int]
+                        ) -> np.ndarray | None:
+    """The same board's corners by ``cv2.findChessboardCornersSB`` with ``CALIB_CB_ACCURACY``
+    (its own sub-pixel model on an upsampled image), searched in a crop 1.5 squares beyond
+    ``corners`` and put in their order; None when not found, not the same corners (each
+    within a fifth of a square of one of ``corners``) or off the board's smooth grid
+    (:func:`corner_outliers`)."""
+    c = np.asarray(corners, float).reshape(-1, 2)
+    side = float(np.median(local_square_px(c, pattern_size)))
+    gray = _gray(gray)
+    H, W = gray.shape[:2]
+    x0, y0 = np.floor(c.min(0) - 1.5 * side).astype(int).clip(0)
+    x1, y1 = np.minimum(np.ceil(c.max(0) + 1.5 * side).astype(int) + 1, [W, H])
+    ok, sb = cv2.findChessboardCornersSB(np.ascontiguousarray(gray[y0:y1, x0:x1]),
+                                         tuple(pattern_size), flags=cv2.CALIB_CB_ACCURACY)
+    if not ok or sb is None:
+        return None
+    sb = sb.reshape(-1, 2).astype(float) + [x0, y0]
+    d = np.linalg.norm(c[:, None] - sb[None], axis=2)
+    near = np.argmin(d, axis=1)
+    if len(np.unique(near)) != len(c) or np.max(d[np.arange(len(c)), near]) > 0.2 * side:
+        return None
+    sb = sb[near]
+    return None if corner_outliers(sb, pattern_size).any() else sb
+
+
 def _gray(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim == 3:
@@ -304,7 +330,7 @@ def _gray(image: np.ndarray) -> np.ndarray:
 
 def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
                          image_size: tuple[int, int] | None = None,
-                         fix_k3: bool | None = None) -> IntrinsicsResult:
+                         fix_k3: bool | None = None, sharpest: bool = True) -> IntrinsicsResult:
     """Zhang's calibration of K and (k1, k2, p1, p2, k3) from chessboard views.
 
     Each view's corners come from :func:`detect_chessboard`; views where the
@@ -313,6 +339,8 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     None (default) fixes it with fewer than ``MIN_VIEWS_FOR_K3`` usable views
     and otherwise frees it only when that lowers the cross-validated (held-out
     views) reprojection RMS by more than 3 % (``K3_GAIN``, :func:`heldout_rms_px`).
+    ``sharpest`` (default): each view then keeps the corner set its pose fits best
+    (:func:`_sharpest_views`) and the model is fitted again with the same flags.
 
     Raises
     ------
@@ -355,9 +383,35 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
                    for f in (cv2.CALIB_FIX_K3, 0)}
         if heldout[0] < K3_GAIN * heldout[cv2.CALIB_FIX_K3]:
             res, flags = _calibrate(img_pts, obj_pts, size, 0), 0
+    if sharpest:
+        img_pts, n_sb = _sharpest_views(used, img_pts, obj_pts, res[0], board.pattern_size, size)
+        if n_sb:
+            res = _calibrate(img_pts, obj_pts, size, flags)
     camera, per_view, rvecs, tvecs = res
     return IntrinsicsResult(camera, per_view, tuple(used), tuple(rejected), tuple(img_pts),
                             tuple(obj_pts), flags, rvecs, tvecs, heldout)
+
+
+def _sharpest_views(paths: list[Path], img_pts: list[np.ndarray], obj_pts: list[np.ndarray],
+                    camera: CameraModel, pattern_size: tuple[int, int], size: tuple[int, int]
+                    ) -> tuple[list[np.ndarray], int]:
+    """Per view, :func:`detect_chessboard`'s corners or OpenCV's SB accuracy mode
+    (:func:`sb_accuracy_corners`), whichever the view's pose fits best under the first
+    calibration's camera (:func:`view_reprojection_sq`); returns the corners and how many
+    views took SB's. Measured against truth on the rendered wide rig's 18 photos: corner
+    rms 0.035 -> 0.028 px (seed 37), 0.027 -> 0.027 (39), 0.026 -> 0.026 (1)."""
+    out, n_sb = [], 0
+    for p, q, o in zip(paths, img_pts, obj_pts):
+        alt = sb_accuracy_corners(read_image(p, size), q, pattern_size)
+        try:
+            better = alt is not None and (view_reprojection_sq(camera, alt, o)
+                                          < view_reprojection_sq(camera, q, o))
+        except (ValueError, cv2.error):
+            better = False
+        if better:
+            q, n_sb = alt, n_sb + 1
+        out.append(q)
+    return out, n_sb
 
 
 #: an extra view joins the fit only when its reprojection RMS under the photos' camera is
@@ -418,12 +472,15 @@ def add_views(res: IntrinsicsResult, image_points: list[np.ndarray],
 
 
 def grid_noise_px(corners: np.ndarray, pattern_size: tuple[int, int]) -> float:
-    """RMS (px, 2-D) of the corners about their smooth grid (:func:`grid_prediction_scaled`,
-    leave-one-out, residuals divided by the prediction's noise gain): the corners' scatter
-    without any camera model (an upper bound: strong distortion adds to it)."""
+    """Robust RMS (px, 2-D) of the corners about their smooth grid
+    (:func:`grid_prediction_scaled`, leave-one-out, residuals divided by the prediction's
+    noise gain): the corners' scatter without any camera model (an upper bound: strong
+    distortion adds to it). From the median: for isotropic Gaussian noise the 2-D distance
+    is Rayleigh, RMS = sqrt(2 / (2 ln 2)) median = 1.201 median; one bad corner does not
+    raise it."""
     pred, gain = grid_prediction_scaled(np.asarray(corners, float), pattern_size)
     r = np.linalg.norm(np.asarray(corners, float) - pred, axis=1) / gain
-    return float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(r).any() else 0.0
+    return float(np.sqrt(1.0 / np.log(2.0)) * np.nanmedian(r)) if np.isfinite(r).any() else 0.0
 
 
 def heldout_rms_px(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tuple[int, int],

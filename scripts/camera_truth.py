@@ -11,7 +11,8 @@ Three tables, each against truth (the true camera and the true board poses of tr
    image (mean, max, deg) and fx, fy, cx, cy errors (px);
 3. board planes: normal (deg) and distance (mm) errors of the V boards from board.png by the
    homography (eqs. 2-3), solvePnP (iterative, from IPPE or from the homography),
-   ``solvePnPRefineLM`` / ``VVS``, with the estimated and with the true camera.
+   ``solvePnPRefineLM`` / ``VVS``, with the estimated camera (``calibrate``'s: the photos
+   plus the V's boards) and with the true camera.
 
     .venv/bin/python scripts/camera_truth.py /tmp/w37 [/tmp/w39 ...]
 """
@@ -35,6 +36,7 @@ from lidarcal.evaluate import (
     truth_camera,
 )
 from lidarcal.io.dataset import CameraModel, load_dataset, read_image
+from lidarcal.pipeline import camera_for
 
 CRIT = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 
@@ -151,9 +153,12 @@ def camera_row(name: str, cam: CameraModel, tcam: CameraModel, extra: str = "") 
 def intrinsics_table(path: Path, truth: dict, ds) -> tuple[pd.DataFrame, CameraModel]:
     tcam = truth_camera(truth, ds.image_size)
     res = calibrate_intrinsics(ds.intrinsics_images(), ds.intrinsics_board, ds.image_size)
-    rows = [camera_row("lidarcal", res.camera, tcam,
+    rows = [camera_row("lidarcal intrinsics (photos)", res.camera, tcam,
                        f"k3 {'fixed' if res.flags & cv2.CALIB_FIX_K3 else 'free'} "
                        f"rms {res.camera.rms_px:.3f}")]
+    cam_v, intr_v = camera_for(ds)
+    rows.append(camera_row("lidarcal calibrate (photos + V)", cam_v, tcam,
+                           f"extra views {len(intr_v.extra_views)}"))
     obj = ds.intrinsics_board.object_points().astype(np.float32)
     for label, det in (("cv2 classic+subpix11", detectors(ds.intrinsics_board.pattern_size)
                         ["classic+subpix11"]), ("cv2 on lidarcal corners", None)):
@@ -179,7 +184,7 @@ def intrinsics_table(path: Path, truth: dict, ds) -> tuple[pd.DataFrame, CameraM
             rows.append(camera_row(f"{label}, {fl}", cam, tcam, f"rms {rms:.3f}"))
     df = pd.DataFrame(rows)
     df.insert(0, "dataset", path.name)
-    return df, res.camera
+    return df, cam_v
 
 
 def plane_table(path: Path, truth: dict, ds, cam_est: CameraModel | None) -> pd.DataFrame:
@@ -236,8 +241,7 @@ def main() -> None:
             I.append(df)
             print(df.round(4).to_string(index=False), flush=True)
         elif ds.camera is None:
-            cam = calibrate_intrinsics(ds.intrinsics_images(), ds.intrinsics_board,
-                                       ds.image_size).camera
+            cam = camera_for(ds)[0]
         if "planes" not in skip:
             P.append(plane_table(path, truth, ds, cam))
             print(P[-1].round(4).to_string(index=False), flush=True)
