@@ -221,29 +221,27 @@ def test_find_v_boards_no_board() -> None:
 
 def test_sharpest_corners_against_truth(v_image) -> None:
     """Of the detector's corners and SB's accuracy mode, the set the PnP pose fits best is
-    kept: never further from the true corners than the detector's own (rendered V, 1.5 DN
-    noise), and when the detector's corners carry 0.3 px extra noise, SB's are taken."""
+    kept: on the rendered V (1.5 DN noise) the detector's (0.013 px from truth against SB's
+    0.022 px, measured); when the detector's corners carry 0.3 px extra noise, SB's."""
     from lidarcal.board import sharpest_corners
     from lidarcal.camera import detect_chessboard, sb_accuracy_corners
 
     img, poses = v_image
-    gray = img.copy()
-    R, T = poses[1]  # the right board alone: paint the left one's half white
-    truth_px = project_points(CAM, BOARD.object_points() @ R.T + T)
-    gray[:, : int(truth_px[:, 0].min() - 60)] = 200
-    det = detect_chessboard(gray, BOARD.pattern_size)
+    det = detect_chessboard(img, BOARD.pattern_size)
+    truths = [project_points(CAM, BOARD.object_points() @ R.T + T) for R, T in poses]
+    truth_px = min(truths, key=lambda t: np.linalg.norm(t.mean(0) - det.mean(0)))
     if np.linalg.norm(det[0] - truth_px[0]) > np.linalg.norm(det[0] - truth_px[-1]):
         truth_px = truth_px[::-1]
 
     def rms(c: np.ndarray) -> float:
         return float(np.sqrt(np.mean(np.sum((c - truth_px) ** 2, axis=1))))
 
-    sb = sb_accuracy_corners(gray, det, BOARD.pattern_size)
-    assert sb is not None and rms(sb) < 0.1
-    chosen = sharpest_corners(gray, det, BOARD, CAM)
-    assert rms(chosen) <= rms(det) + 1e-12 and rms(chosen) < 0.1
+    sb = sb_accuracy_corners(img, det, BOARD.pattern_size)
+    assert sb is not None and rms(sb) < 0.05
+    chosen = sharpest_corners(img, det, BOARD, CAM)
+    assert rms(chosen) <= min(rms(det), rms(sb)) + 1e-12
     noisy = det + np.random.default_rng(3).normal(0, 0.3, det.shape)
-    assert np.array_equal(sharpest_corners(gray, noisy, BOARD, CAM), sb)
-    # SB not finding that board (blank image): the given corners come back unchanged
-    blank = np.full_like(gray, 120)
+    assert rms(noisy) > 0.3 and rms(sharpest_corners(img, noisy, BOARD, CAM)) < 0.05
+    # SB not finding the board (blank image): the given corners come back unchanged
+    blank = np.full_like(img, 120)
     assert np.array_equal(sharpest_corners(blank, det, BOARD, CAM), det)
