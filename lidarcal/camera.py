@@ -429,8 +429,10 @@ def add_views(res: IntrinsicsResult, image_points: list[np.ndarray],
     Every view of a chessboard constrains K and the distortion (Zhang 2000); a board seen
     at another distance adds to the photos what fixes the focal length best, and the V's
     own poses then come from the camera that fits them. Measured on the rendered wide rig
-    (seeds 37, 39, 1) against truth: the V boards' plane offsets 0.13/0.20, 0.16/0.20,
-    0.10/0.08 mm from the photos alone, 0.08/0.16, 0.12/0.16, 0.02/0.004 mm with them.
+    against truth (seeds 37, 39, 1; ``scripts/camera_truth.py``): fx error -0.12, -0.22,
+    -0.09 px from the photos alone, -0.004, -0.22, -0.03 px with the V's boards; with the
+    photos' first corners the V planes' offsets were 0.13/0.20, 0.16/0.20, 0.10/0.08 mm
+    alone and 0.08/0.16, 0.12/0.16, 0.02/0.004 mm with them.
     The k3 choice of the photos is kept. Quality checks: an extra view whose reprojection
     RMS under the photos' camera exceeds ``EXTRA_VIEW_RMS_FACTOR`` times the larger of the
     photos' median per-view RMS and its own corners' scatter (:func:`grid_noise_px`; the
