@@ -11,7 +11,7 @@ image coordinates are ``(x / z, y / z)``; lengths in mm.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -52,6 +52,10 @@ class IntrinsicsResult:
     tvecs: tuple[np.ndarray, ...] = ()
     #: cross-validated reprojection RMS (px) without / with k3 ({flags: rms}), when compared
     heldout_rms_px: dict | None = None
+    #: further views of the same camera in the fit (:func:`add_views`): (name, rms_px)
+    extra_views: tuple[tuple[str, float], ...] = ()
+    #: what the quality checks of :func:`add_views` found (they name the view)
+    warnings: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         """``camera.json``: dataset.json's ``camera`` keys (K, dist, image_size, source,
@@ -63,6 +67,8 @@ class IntrinsicsResult:
                         for p, r in zip(self.files_used, self.per_view_rms_px)]
         out["rejected"] = [p.name for p in self.files_rejected]
         out["k3"] = "fixed" if self.flags & cv2.CALIB_FIX_K3 else "free"
+        if self.extra_views:
+            out["extra_views"] = [{"name": n, "rms_px": float(r)} for n, r in self.extra_views]
         if self.heldout_rms_px is not None:
             out["heldout_rms_px"] = {"k3_fixed": self.heldout_rms_px[cv2.CALIB_FIX_K3],
                                      "k3_free": self.heldout_rms_px[0]}
@@ -287,6 +293,32 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     return out
 
 
+def sb_accuracy_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[int, int]
+                        ) -> np.ndarray | None:
+    """The same board's corners by ``cv2.findChessboardCornersSB`` with ``CALIB_CB_ACCURACY``
+    (its own sub-pixel model on an upsampled image), searched in a crop 1.5 squares beyond
+    ``corners`` and put in their order; None when not found, not the same corners (each
+    within a fifth of a square of one of ``corners``) or off the board's smooth grid
+    (:func:`corner_outliers`)."""
+    c = np.asarray(corners, float).reshape(-1, 2)
+    side = float(np.median(local_square_px(c, pattern_size)))
+    gray = _gray(gray)
+    H, W = gray.shape[:2]
+    x0, y0 = np.floor(c.min(0) - 1.5 * side).astype(int).clip(0)
+    x1, y1 = np.minimum(np.ceil(c.max(0) + 1.5 * side).astype(int) + 1, [W, H])
+    ok, sb = cv2.findChessboardCornersSB(np.ascontiguousarray(gray[y0:y1, x0:x1]),
+                                         tuple(pattern_size), flags=cv2.CALIB_CB_ACCURACY)
+    if not ok or sb is None:
+        return None
+    sb = sb.reshape(-1, 2).astype(float) + [x0, y0]
+    d = np.linalg.norm(c[:, None] - sb[None], axis=2)
+    near = np.argmin(d, axis=1)
+    if len(np.unique(near)) != len(c) or np.max(d[np.arange(len(c)), near]) > 0.2 * side:
+        return None
+    sb = sb[near]
+    return None if corner_outliers(sb, pattern_size).any() else sb
+
+
 def _gray(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim == 3:
@@ -298,7 +330,7 @@ def _gray(image: np.ndarray) -> np.ndarray:
 
 def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
                          image_size: tuple[int, int] | None = None,
-                         fix_k3: bool | None = None) -> IntrinsicsResult:
+                         fix_k3: bool | None = None, sharpest: bool = True) -> IntrinsicsResult:
     """Zhang's calibration of K and (k1, k2, p1, p2, k3) from chessboard views.
 
     Each view's corners come from :func:`detect_chessboard`; views where the
@@ -307,6 +339,8 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     None (default) fixes it with fewer than ``MIN_VIEWS_FOR_K3`` usable views
     and otherwise frees it only when that lowers the cross-validated (held-out
     views) reprojection RMS by more than 3 % (``K3_GAIN``, :func:`heldout_rms_px`).
+    ``sharpest`` (default): each view then keeps the corner set its pose fits best
+    (:func:`_sharpest_views`) and the model is fitted again with the same flags.
 
     Raises
     ------
@@ -349,9 +383,106 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
                    for f in (cv2.CALIB_FIX_K3, 0)}
         if heldout[0] < K3_GAIN * heldout[cv2.CALIB_FIX_K3]:
             res, flags = _calibrate(img_pts, obj_pts, size, 0), 0
+    if sharpest:
+        img_pts, n_sb = _sharpest_views(used, img_pts, obj_pts, res[0], board.pattern_size, size)
+        if n_sb:
+            res = _calibrate(img_pts, obj_pts, size, flags)
     camera, per_view, rvecs, tvecs = res
     return IntrinsicsResult(camera, per_view, tuple(used), tuple(rejected), tuple(img_pts),
                             tuple(obj_pts), flags, rvecs, tvecs, heldout)
+
+
+def _sharpest_views(paths: list[Path], img_pts: list[np.ndarray], obj_pts: list[np.ndarray],
+                    camera: CameraModel, pattern_size: tuple[int, int], size: tuple[int, int]
+                    ) -> tuple[list[np.ndarray], int]:
+    """Per view, :func:`detect_chessboard`'s corners or OpenCV's SB accuracy mode
+    (:func:`sb_accuracy_corners`), whichever the view's pose fits best under the first
+    calibration's camera (:func:`view_reprojection_sq`); returns the corners and how many
+    views took SB's. Measured against truth on the rendered wide rig's 18 photos: corner
+    rms 0.035 -> 0.028 px (seed 37), 0.027 -> 0.027 (39), 0.026 -> 0.026 (1)."""
+    out, n_sb = [], 0
+    for p, q, o in zip(paths, img_pts, obj_pts):
+        alt = sb_accuracy_corners(read_image(p, size), q, pattern_size)
+        try:
+            better = alt is not None and (view_reprojection_sq(camera, alt, o)
+                                          < view_reprojection_sq(camera, q, o))
+        except (ValueError, cv2.error):
+            better = False
+        if better:
+            q, n_sb = alt, n_sb + 1
+        out.append(q)
+    return out, n_sb
+
+
+#: an extra view joins the fit only when its reprojection RMS under the photos' camera is
+#: within this factor of its expected noise (:func:`add_views`): a view of another focus or zoom
+#: (or with a wrong corner) would bend the camera model instead of sharpening it
+EXTRA_VIEW_RMS_FACTOR = 3.0
+
+
+def add_views(res: IntrinsicsResult, image_points: list[np.ndarray],
+              object_points: list[np.ndarray], names: list[str],
+              pattern_sizes: list[tuple[int, int]]) -> IntrinsicsResult:
+    """Zhang's calibration (``cv2.calibrateCamera``) of the photos together with further
+    chessboard views of the same camera, e.g. the two boards of the V in ``board.png``.
+
+    Every view of a chessboard constrains K and the distortion (Zhang 2000); a board seen
+    at another distance adds to the photos what fixes the focal length best, and the V's
+    own poses then come from the camera that fits them. Measured on the rendered wide rig
+    against truth (seeds 37, 39, 1; ``scripts/camera_truth.py``): fx error -0.12, -0.22,
+    -0.09 px from the photos alone, -0.004, -0.22, -0.03 px with the V's boards; with the
+    photos' first corners the V planes' offsets were 0.13/0.20, 0.16/0.20, 0.10/0.08 mm
+    alone and 0.08/0.16, 0.12/0.16, 0.02/0.004 mm with them.
+    The k3 choice of the photos is kept. Quality checks: an extra view whose reprojection
+    RMS under the photos' camera exceeds ``EXTRA_VIEW_RMS_FACTOR`` times the larger of the
+    photos' median per-view RMS and its own corners' scatter (:func:`grid_noise_px`; the
+    V's bright image may be noisier than the photos) is left out (a warning names it), and the joint fit is dropped (warning)
+    when it raises the photos' overall RMS by more than half.
+    """
+    cam0 = res.camera
+    med = float(np.median(res.per_view_rms_px))
+    img, obj, kept, warns = list(res.image_points), list(res.object_points), [], []
+    for q, o, name in zip(image_points, object_points, names):
+        q = np.asarray(q, float).reshape(-1, 2)
+        try:
+            rms = float(np.sqrt(view_reprojection_sq(cam0, q, o) / len(q)))
+        except (ValueError, cv2.error):
+            rms = np.inf
+        noise = grid_noise_px(q, pattern_sizes[len(kept) + len(warns)])
+        if not rms <= EXTRA_VIEW_RMS_FACTOR * max(med, noise):
+            warns.append(f"{name}: reprojection RMS {rms:.3f} px under the camera of the "
+                         f"intrinsics photos, its corners' own scatter {noise:.3f} px (the "
+                         f"photos' median RMS {med:.3f} px); not used to refine the camera "
+                         "(another focus or zoom? a wrong corner?)")
+            continue
+        img.append(q)
+        obj.append(np.asarray(o, float))
+        kept.append(name)
+    if not kept:
+        return replace(res, warnings=res.warnings + tuple(warns))
+    cam, per_view, rvecs, tvecs = _calibrate(img, obj, cam0.image_size, res.flags)
+    n = len(res.image_points)
+    photos_rms = float(np.sqrt(np.mean(per_view[:n] ** 2)))
+    if photos_rms > 1.5 * float(np.sqrt(np.mean(res.per_view_rms_px ** 2))):
+        warns.append(f"with {', '.join(kept)} the intrinsics photos fit to {photos_rms:.3f} px "
+                     f"instead of {np.sqrt(np.mean(res.per_view_rms_px ** 2)):.3f} px; the "
+                     "camera is calibrated from the photos alone")
+        return replace(res, warnings=res.warnings + tuple(warns))
+    return replace(res, camera=cam, per_view_rms_px=per_view[:n], rvecs=rvecs[:n],
+                   tvecs=tvecs[:n], extra_views=tuple(zip(kept, per_view[n:].tolist())),
+                   warnings=res.warnings + tuple(warns))
+
+
+def grid_noise_px(corners: np.ndarray, pattern_size: tuple[int, int]) -> float:
+    """Robust RMS (px, 2-D) of the corners about their smooth grid
+    (:func:`grid_prediction_scaled`, leave-one-out, residuals divided by the prediction's
+    noise gain): the corners' scatter without any camera model (an upper bound: strong
+    distortion adds to it). From the median: for isotropic Gaussian noise the 2-D distance
+    is Rayleigh, RMS = sqrt(2 / (2 ln 2)) median = 1.201 median; one bad corner does not
+    raise it."""
+    pred, gain = grid_prediction_scaled(np.asarray(corners, float), pattern_size)
+    r = np.linalg.norm(np.asarray(corners, float) - pred, axis=1) / gain
+    return float(np.sqrt(1.0 / np.log(2.0)) * np.nanmedian(r)) if np.isfinite(r).any() else 0.0
 
 
 def heldout_rms_px(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tuple[int, int],

@@ -28,7 +28,7 @@ import numpy as np
 
 from . import __version__
 from .board import BoardView, find_v_boards
-from .camera import IntrinsicsResult, calibrate_intrinsics
+from .camera import IntrinsicsResult, add_views, calibrate_intrinsics
 from .geometry import Pose
 from .io.dataset import (
     CALIBRATION_FORMAT,
@@ -205,6 +205,14 @@ def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
     if ds.intrinsics_board is None:
         raise DatasetError(ds.dataset_json, "no 'camera' and no 'intrinsics_board' to calibrate with")
     res = calibrate_intrinsics(ds.intrinsics_images(), ds.intrinsics_board, ds.image_size)
+    # the V's two boards in board.png are views of the same camera: they join the fit
+    try:
+        views = find_v_boards(read_image(ds.board_image, ds.image_size), ds.v_board, res.camera)
+    except (ValueError, DatasetError):
+        return res.camera, res  # find_boards reports board.png's problem
+    res = add_views(res, [v.corners_px for v in views], [ds.v_board.object_points()] * 2,
+                    [f"{ds.board_image.name} board {k}" for k in range(2)],
+                    [ds.v_board.pattern_size] * 2)
     return res.camera, res
 
 
@@ -331,6 +339,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     paper = fit_paper(psi, samples)
     rigid = fit_rigid(psi, samples, init=paper)
     warnings += _setup_warnings(psi, results)
+    warnings += list(intr.warnings) if intr is not None else []
     res = CalibrationResult(ds, camera, intr, boards, results, skipped, paper, rigid, method,
                             warnings)
     if method == "joint":
