@@ -16,6 +16,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[dev]'
 	$(BIN)/python -m ipykernel install --sys-prefix --name python3 >/dev/null
 	-$(BIN)/python -m compileall -q -j 2 $(VENV)/lib >/dev/null 2>&1
+	-$(BIN)/python -m compileall -q lidarcal >/dev/null 2>&1
 	@touch $(STAMP)
 
 test: $(STAMP)
@@ -44,6 +45,9 @@ study: $(STAMP)
 	$(BIN)/python -m lidarcal.study --ranging reports/study_ranging.csv
 
 bench: $(STAMP)
+	@# bytecode as a pip install leaves it (the editable install never writes it when
+	@# PYTHONDONTWRITEBYTECODE is set: every run would compile the package, ~50 ms)
+	-$(BIN)/python -m compileall -q lidarcal >/dev/null 2>&1
 	$(BIN)/python scripts/bench.py $(DATA)
 
 lint: $(STAMP)

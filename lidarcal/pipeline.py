@@ -269,9 +269,10 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     naming its file) instead of being skipped with a warning (the default, while at
     least ``MIN_POSITIONS`` remain). ``skip_failed`` is accepted for old callers and
     ignored (skipping is the default now).
-    ``images``: stripe images already being decoded (:class:`lidarcal.io.dataset.ImagePrefetch`,
-    closed by its owner); by default they are decoded in a background thread while the
-    boards are found, and that thread is stopped before returning or raising.
+    ``images``: stripe images already being decoded (:class:`lidarcal.io.dataset.ImagePrefetch`);
+    by default they are decoded in a background thread while the boards are found. Either
+    way the decoding stops (:meth:`~lidarcal.io.dataset.ImagePrefetch.close`) before the
+    positions are solved; the images not decoded by then are read by the workers.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -291,7 +292,9 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
         # the stripe's reflectance ratio (a few images) while the last images are decoded
         rho = dataset_reflectance_ratio(camera, boards, todo,
                                         laser_colour=ds.lidar.laser_colour)
-        images.join()  # joined: no thread runs when the workers fork
+        # stopped, not waited for: no thread runs when the workers fork, and the images not
+        # decoded yet are decoded by the workers, on both cores, instead of by one thread
+        images.close()
         return _calibrate(ds, camera, intr, boards, todo, skip, strict, method, progress,
                           workers, rho)
     finally:
@@ -304,7 +307,9 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
 def _worker_pool(workers: int, camera: CameraModel, boards: tuple[BoardView, BoardView],
                  lidar: LidarSpec):
     """A process pool with the run's constants set once per worker; on any error (or
-    Ctrl-C) the queued tasks are cancelled and the workers joined before it propagates."""
+    Ctrl-C) the queued tasks are cancelled and the workers joined before it propagates.
+    After the last result the workers exit while the caller goes on (the pool's own
+    thread joins them; at the latest the interpreter does, at exit)."""
     ex = ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
                              initargs=(camera, boards, lidar), mp_context=_fork_context())
     try:
@@ -312,7 +317,7 @@ def _worker_pool(workers: int, camera: CameraModel, boards: tuple[BoardView, Boa
     except BaseException:
         ex.shutdown(wait=True, cancel_futures=True)
         raise
-    ex.shutdown(wait=True)
+    ex.shutdown(wait=False)
 
 
 def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,

@@ -4,7 +4,8 @@ Companion of ``scripts/bench.py`` (which times whole processes): this runs the s
 the calibration one after the other in this process, on one core, and prints wall and CPU
 seconds per stage, so the remaining gap to the read-only floor can be attributed:
 
-  imports      ``import lidarcal.pipeline, lidarcal.joint`` (a fresh process, best of 3),
+  imports      ``import lidarcal.pipeline, lidarcal.joint`` as ``lidarcal calibrate`` does it
+               (garbage collector paused, then frozen; a fresh process, best of 3),
                next to ``import cv2, numpy, pandas`` (the floor's own imports)
   decode       every stripe image (:func:`lidarcal.io.dataset.read_stripe_image`)
   scans        every scan (:func:`lidarcal.io.dataset.read_scan`)
@@ -57,7 +58,8 @@ def main() -> None:
     a = ap.parse_args()
     load0 = os.getloadavg()[0]
     t_floor_imp = _import_seconds("import cv2, numpy, pandas")
-    t_imp = _import_seconds("import lidarcal.pipeline, lidarcal.joint")
+    t_imp = _import_seconds("import gc; gc.disable(); import lidarcal.pipeline, lidarcal.joint; "
+                            "gc.freeze(); gc.enable()")  # as lidarcal.cli imports them
 
     from lidarcal import pipeline as P
     from lidarcal.io.dataset import load_dataset, read_scan, read_stripe_image
