@@ -78,6 +78,19 @@ def test_a_saturated_stripe_is_a_problem(dataset_copy):
     assert not list(dataset_copy.glob("*-check.png"))  # --no-sheet writes none
 
 
+def test_saturated_stripes_are_problems_but_the_positions_still_count(dataset_copy):
+    # calibrate uses saturated stripes (their centres come from the unclipped flanks), so check
+    # must not call every position unusable when all are saturated, only name each image
+    for path in sorted((dataset_copy / "stripes").glob("*.png")):
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), np.clip(img.astype(np.int32) * 3, 0, 255).astype(np.uint8))
+    res = check_dataset(dataset_copy)
+    assert not res.usable
+    assert all(p.detected and not p.ok and p.saturated_share > 0.05 for p in res.positions)
+    assert not any("usable position" in p for p in res.problems), res.problems
+    assert sum("saturated; lower the exposure" in p for p in res.all_problems) == 4
+
+
 def test_a_corrupt_stripe_image_and_a_missing_scan_are_problems(dataset_copy):
     (dataset_copy / "stripes" / "0000.png").write_bytes(b"not a png")
     (dataset_copy / "scans" / "0003.csv").unlink()
