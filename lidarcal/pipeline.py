@@ -52,7 +52,7 @@ from .stripe import (
     camera_lines,
     estimate_reflectance_ratio,
 )
-from .turntable import fit_paper, fit_rigid
+from .turntable import angle_scale, fit_paper, fit_rigid
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -328,6 +328,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]
     psi = np.array([r.psi_deg for r in results])
     samples = [r.pose for r in results]
+    warnings += _check_angle_scale(ds, psi, samples)
     paper = fit_paper(psi, samples)
     rigid = fit_rigid(psi, samples, init=paper)
     warnings += _setup_warnings(psi, results)
@@ -365,6 +366,23 @@ def _apply_skip_policy(ds: Dataset, todo: list[Position], outcomes: list, strict
                            f"only {len(results)} usable position(s), the turntable fit needs at least "
                            f"{MIN_POSITIONS}; capture more positions")
     return results, failed
+
+
+def _check_angle_scale(ds: Dataset, psi: np.ndarray, samples: list[Pose]) -> list[str]:
+    """The reported angles must measure the samples' turn (:func:`lidarcal.turntable.angle_scale`):
+    off by more than 10 % (and 0.2 deg, 4x the worst sample noise seen) is fatal, naming
+    positions.csv; by 3-10 % a warning."""
+    sc = angle_scale(psi, samples)
+    off = abs(sc.turned_deg - sc.reported_deg)
+    text = (f"the single-shot poses turn {sc.turned_deg:.4g} deg between positions whose psi_deg "
+            f"differ by {sc.reported_deg:.4g} deg (median of {sc.pairs} pairs, ratio {sc.ratio:.3g})")
+    if off > 0.2 and abs(sc.ratio - 1.0) > 0.10:
+        raise DatasetError(ds.root / "positions.csv",
+                           f"{text}; psi_deg must be the turntable angle in degrees (radians? encoder "
+                           "counts? a gear ratio?)")
+    if off > 0.2 and abs(sc.ratio - 1.0) > 0.03:
+        return [f"{ds.root / 'positions.csv'}: {text}; is psi_deg the turntable angle in degrees?"]
+    return []
 
 
 def _setup_warnings(psi: np.ndarray, results: list[PositionResult]) -> list[str]:

@@ -128,6 +128,42 @@ def _check_inputs(psi_deg, samples: Sequence[Pose]) -> np.ndarray:
     return psi
 
 
+@dataclass(frozen=True)
+class AngleScale:
+    """How far the single-shot samples turn against the reported angles (:func:`angle_scale`)."""
+
+    turned_deg: float     # median rotation angle between the samples of the compared pairs
+    reported_deg: float   # median reported angle difference of those pairs (wrapped to 0..180)
+    pairs: int
+
+    @property
+    def ratio(self) -> float:
+        return self.turned_deg / self.reported_deg if self.reported_deg > 0 else np.inf
+
+
+def angle_scale(psi_deg, samples: Sequence[Pose]) -> AngleScale:
+    """Do the reported angles measure the turn the samples show? (the premise of eq. 15).
+
+    A rotation about a fixed axis by ``dpsi`` turns every pose by exactly
+    ``|dpsi|``: the rotation angle of ``R_i R_j^T``, ``arccos((tr - 1) / 2)``,
+    equals ``|psi_i - psi_j|`` (wrapped to 0..180 deg) whatever the axis. Over
+    the pairs at least half the span apart, the medians of both are compared;
+    angles in radians, in encoder counts or through a gear ratio show as a
+    ratio far from 1. Robust to a minority of wrong samples (medians).
+    """
+    psi = np.asarray(psi_deg, dtype=float).ravel()
+    R = np.stack([np.asarray(q.R, float) for q in samples])
+    i, j = np.triu_indices(len(psi), 1)
+    dpsi = np.abs(psi[j] - psi[i])
+    far = dpsi >= 0.5 * dpsi.max()
+    i, j, dpsi = i[far], j[far], dpsi[far]
+    tr = np.einsum("nab,nab->n", R[i], R[j])          # tr(R_i R_j^T)
+    turned = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    wrapped = np.mod(dpsi, 360.0)
+    wrapped = np.minimum(wrapped, 360.0 - wrapped)
+    return AngleScale(float(np.median(turned)), float(np.median(wrapped)), int(len(i)))
+
+
 def _poses_out(psi_deg, R: np.ndarray, T: np.ndarray) -> Pose | list[Pose]:
     if np.ndim(psi_deg) == 0:
         return Pose(R[0], T[0])

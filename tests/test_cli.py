@@ -406,3 +406,18 @@ def test_skipped_position_is_listed_in_the_report(dataset_copy, tmp_path, capsys
     skipped = src.split("== Skipped positions")[1].split("== Warnings")[0]
     assert esc(named)[2:-1] in skipped and "[1]" in skipped
     assert "1 position(s) skipped" in src
+
+
+def test_angles_in_radians_are_refused_naming_positions_csv(dataset_copy, tmp_path):
+    # psi_deg written in radians: the samples turn 57 times more than the angles say; calibrating
+    # anyway gave poses a metre off with exit 0
+    pos = dataset_copy / "positions.csv"
+    df = pd.read_csv(pos)
+    df["psi_deg"] = np.radians(df["psi_deg"])
+    df.to_csv(pos, index=False)
+    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out",
+                        str(tmp_path / "cal")], capture_output=True, text=True, check=False)
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {pos}: the single-shot poses turn") and "radians?" in last
+    assert not (tmp_path / "cal" / "calibration.json").exists()
