@@ -191,3 +191,27 @@ def test_ranges_in_metres_are_named(tmp_path):
     with pytest.raises(DatasetError, match=r"every return is outside .*ranges must be in mm") as e:
         read_scan(p, ds.lidar)
     assert str(e.value).startswith(str(p))
+
+
+def test_scan_angles_must_fit_the_lidar_of_dataset_json(tmp_path):
+    """Beam angles in radians (or from a LiDAR configured wider than dataset.json says) are named;
+    rounded angles, a step given to 4 digits and omitted rows are accepted."""
+    from lidarcal.io.dataset import LidarSpec
+
+    lidar = LidarSpec(-35.0, 35.0, 0.0833, 700.0, 3000.0)
+    ang = -35.0 + np.arange(841) / 12.0
+
+    def scan(name, a, keep=slice(None), digits=2):
+        p = tmp_path / name
+        rows = [f"{x:.{digits}f},{1500 + 100 * np.cos(np.radians(x)):.1f}\n" for x in a[keep]]
+        p.write_text("angle_deg,range_mm\n" + "".join(rows))
+        return p
+
+    got, _ = read_scan(scan("ok.csv", ang, slice(None, None, 2)), lidar)
+    assert len(got) == 421
+    p = scan("rad.csv", np.radians(ang), digits=6)
+    with pytest.raises(DatasetError, match=r"beam angles .* radians") as e:
+        read_scan(p, lidar)
+    assert str(e.value).startswith(str(p))
+    with pytest.raises(DatasetError, match=r"outside dataset.json's lidar.angle_min_deg"):
+        read_scan(scan("wide.csv", -135.0 + np.arange(1081) / 4.0), lidar)

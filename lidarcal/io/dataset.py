@@ -494,7 +494,26 @@ def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, n
     rng = _ranges(cols["range_mm"], path, lidar)
     if np.any(np.diff(ang) <= 0):
         raise DatasetError(path, "angles are not strictly ascending; one row per beam expected")
+    if lidar is not None:
+        _check_beam_angles(path, ang, lidar)
     return ang, rng
+
+
+def _check_beam_angles(path: Path, ang: np.ndarray, lidar: LidarSpec) -> None:
+    """The scan's beams lie on dataset.json's layout (beam ``k`` at ``angle_min_deg + k *
+    angle_step_deg``): not closer than half a step on average (angles in radians) and inside
+    ``angle_min_deg..angle_max_deg`` (two steps of slack). Rows may be omitted or rounded."""
+    step = lidar.angle_step_deg
+    if len(ang) >= 2 and (ang[-1] - ang[0]) / (len(ang) - 1) < 0.5 * step:
+        raise DatasetError(path, f"beam angles {ang[0]:g}..{ang[-1]:g} are "
+                                 f"{(ang[-1] - ang[0]) / (len(ang) - 1):.3g} apart on average, less "
+                                 f"than lidar.angle_step_deg {step:g} of dataset.json; are they in "
+                                 "radians? angle_deg must be degrees")
+    tol = 2 * step + 0.01
+    if ang[0] < lidar.angle_min_deg - tol or ang[-1] > lidar.angle_max_deg + tol:
+        raise DatasetError(path, f"beam angles {ang[0]:g}..{ang[-1]:g} deg lie outside dataset.json's "
+                                 f"lidar.angle_min_deg..angle_max_deg ({lidar.angle_min_deg:g}.."
+                                 f"{lidar.angle_max_deg:g}); fix dataset.json's lidar block or the scan")
 
 
 def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
