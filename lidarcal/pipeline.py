@@ -272,6 +272,11 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
 
     ranging_prior(ds.raw, ds.dataset_json)  # lidar.range_offset_* checked before any work
     skip = set(skip)
+    unknown = sorted(skip - {p.index for p in ds.positions})
+    if unknown:
+        raise DatasetError(ds.root / "positions.csv",
+                           f"--skip {' '.join(map(str, unknown))}: no position with that index; "
+                           f"the indices are {_index_ranges([p.index for p in ds.positions])}")
     todo = [p for p in ds.positions if p.index not in skip]
     own = images is None
     if own:
@@ -290,6 +295,17 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
         _WORKER.pop("images", None)
         if own:
             images.close()
+
+
+def _index_ranges(indices: list[int]) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` as ``0-2, 5, 7-8``."""
+    idx, parts, start = sorted(indices), [], None
+    for k, i in enumerate(idx):
+        start = i if start is None else start
+        if k + 1 == len(idx) or idx[k + 1] != i + 1:
+            parts.append(f"{start}" if start == i else f"{start}-{i}")
+            start = None
+    return ", ".join(parts)
 
 
 @contextmanager

@@ -421,3 +421,13 @@ def test_angles_in_radians_are_refused_naming_positions_csv(dataset_copy, tmp_pa
     last = p.stderr.strip().splitlines()[-1]
     assert last.startswith(f"error: {pos}: the single-shot poses turn") and "radians?" in last
     assert not (tmp_path / "cal" / "calibration.json").exists()
+
+
+def test_skip_of_an_index_that_does_not_exist_is_refused(small_dataset, tmp_path, capsys):
+    # a typo in --skip used to be recorded as a skipped position and calibrate ran on
+    code, _, err = run(["calibrate", str(small_dataset), "--out", str(tmp_path), "--skip", "1", "99"],
+                       capsys)
+    assert code == 2
+    assert err.strip() == (f"error: {small_dataset / 'positions.csv'}: --skip 99: no position with "
+                           "that index; the indices are 0-3")
+    assert not (tmp_path / "calibration.json").exists()
