@@ -144,12 +144,15 @@ class AngleScale:
 def angle_scale(psi_deg, samples: Sequence[Pose]) -> AngleScale:
     """Do the reported angles measure the turn the samples show? (the premise of eq. 15).
 
-    A rotation about a fixed axis by ``dpsi`` turns every pose by exactly
-    ``|dpsi|``: the rotation angle of ``R_i R_j^T``, ``arccos((tr - 1) / 2)``,
-    equals ``|psi_i - psi_j|`` (wrapped to 0..180 deg) whatever the axis. Over
-    the pairs at least half the span apart, the medians of both are compared;
-    angles in radians, in encoder counts or through a gear ratio show as a
-    ratio far from 1. Robust to a minority of wrong samples (medians).
+    A rotation about a fixed axis ``k`` by ``dpsi`` turns every pose by exactly
+    ``dpsi`` about ``k``: ``R_j R_i^T = Rot(k, psi_j - psi_i)`` whatever the
+    axis. Over the pairs at least half the span apart, ``k`` is the median of
+    the pairs' rotation vectors over their angle differences, the turn of a
+    pair the component of its rotation vector along ``k`` (the samples' noise
+    across ``k`` then does not lengthen it), and the medians of the turns and
+    of ``|psi_i - psi_j|`` (wrapped to 0..180 deg) are compared; angles in
+    radians, in encoder counts or through a gear ratio show as a ratio far
+    from 1. Robust to a minority of wrong samples (medians).
     """
     psi = np.asarray(psi_deg, dtype=float).ravel()
     R = np.stack([np.asarray(q.R, float) for q in samples])
@@ -157,8 +160,9 @@ def angle_scale(psi_deg, samples: Sequence[Pose]) -> AngleScale:
     dpsi = np.abs(psi[j] - psi[i])
     far = dpsi >= 0.5 * dpsi.max()
     i, j, dpsi = i[far], j[far], dpsi[far]
-    tr = np.einsum("nab,nab->n", R[i], R[j])          # tr(R_i R_j^T)
-    turned = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    rv = Rotation.from_matrix(R[j] @ np.transpose(R[i], (0, 2, 1))).as_rotvec()  # rad
+    k = unit(np.median(rv / (psi[j] - psi[i])[:, None], axis=0))
+    turned = np.degrees(np.abs(rv @ k))
     wrapped = np.mod(dpsi, 360.0)
     wrapped = np.minimum(wrapped, 360.0 - wrapped)
     return AngleScale(float(np.median(turned)), float(np.median(wrapped)), int(len(i)))
