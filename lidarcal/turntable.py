@@ -165,7 +165,7 @@ def angle_scale(psi_deg, samples: Sequence[Pose]) -> AngleScale:
     turned = np.degrees(np.abs(rv @ k))
     wrapped = np.mod(dpsi, 360.0)
     wrapped = np.minimum(wrapped, 360.0 - wrapped)
-    return AngleScale(float(np.median(turned)), float(np.median(wrapped)), int(len(i)))
+    return AngleScale(float(np.median(turned)), float(np.median(wrapped)), len(i))
 
 
 def _poses_out(psi_deg, R: np.ndarray, T: np.ndarray) -> Pose | list[Pose]:

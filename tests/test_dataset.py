@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -215,3 +216,14 @@ def test_scan_angles_must_fit_the_lidar_of_dataset_json(tmp_path):
     assert str(e.value).startswith(str(p))
     with pytest.raises(DatasetError, match=r"outside dataset.json's lidar.angle_min_deg"):
         read_scan(scan("wide.csv", -135.0 + np.arange(1081) / 4.0), lidar)
+
+
+def test_atomic_writes_get_the_umask_permissions_not_mkstemp_private_ones(tmp_path):
+    """calibration.json and every other output are readable as the user's umask says (mkstemp's
+    0600 survived the rename: a lab's other accounts could not read the results)."""
+    old = os.umask(0o022)
+    try:
+        write_json_atomic(tmp_path / "c.json", {"a": 1})
+    finally:
+        os.umask(old)
+    assert (tmp_path / "c.json").stat().st_mode & 0o777 == 0o644
