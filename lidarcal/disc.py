@@ -50,6 +50,7 @@ crossings, :func:`random_sigma_mm`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -260,8 +261,32 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                     "edge_offset_mm": edge.k * row["beam_spacing_mm"], "mixed_share": row["mixed_share"]})
     table = pd.DataFrame(out)
     table.attrs["edge_model"] = edge.to_dict()
-    table.attrs["warnings"] = list(edge.warnings)
+    table.attrs["warnings"] = _other_rig_warnings(ds, calibration) + list(edge.warnings)
     return table
+
+
+def _other_rig_warnings(ds, calibration) -> list[str]:
+    """A ``calibration.json`` made from another dataset folder, or with another camera, measures
+    this one only if the rig is the same and has not moved: say so (eq. 28 trusts the pose)."""
+    import json
+    import os
+
+    if hasattr(calibration, "pose"):
+        return []
+    try:
+        cal = json.loads(Path(calibration).read_text())
+    except (OSError, ValueError):
+        return []
+    src = cal.get("dataset")
+    if not isinstance(src, str) or os.path.realpath(src) == os.path.realpath(ds.root):
+        return []
+    cam, own = cal.get("camera") or {}, ds.camera
+    same_camera = own is None or not cam.get("K") or (
+        list(cam.get("image_size", [])) == list(own.image_size)
+        and np.allclose(np.asarray(cam["K"], float), own.K, rtol=1e-6, atol=1e-6))
+    return [f"{calibration}: made from another dataset ({src})"
+            + ("" if same_camera else " with another camera (K or image_size differ)")
+            + f"; measuring {ds.root} with it assumes the same rig, unmoved since that calibration"]
 
 
 def table2_columns(measurements: dict) -> dict[str, list]:
