@@ -13,8 +13,8 @@ stripe's core pixels that are saturated (a clipped core biases the sub-pixel
 centre). A one-page contact sheet shows every stripe image with its detections.
 
 Exit status (the CLI): 0 usable, 1 problems (listed, one line each, naming the
-file and what to do), 2 unreadable (``dataset.json`` or ``positions.csv``
-cannot be read; one ``error:`` line).
+file and what to do), 2 unreadable (``dataset.json``, ``positions.csv`` or
+``board.png`` cannot be read; one ``error:`` line).
 """
 
 from __future__ import annotations
@@ -209,7 +209,7 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     """Read a dataset and run the per-position detections, without the fits.
 
     Raises :class:`DatasetError` only when the dataset cannot be read at all
-    (``dataset.json``, ``positions.csv``); everything else is listed in the result.
+    (``dataset.json``, ``positions.csv``, ``board.png``); everything else is listed in the result.
     """
     from .pipeline import (
         MIN_POSITIONS,
@@ -230,8 +230,9 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     except DatasetError as e:
         res.problems.append(str(e))
     if camera is not None:
+        # an unreadable board.png is fatal, as a missing one is (and as in calibrate)
+        board_image = read_image(ds.board_image, camera.image_size)
         try:
-            board_image = read_image(ds.board_image, camera.image_size)
             res.board_thumbnail, res.board_thumb_scale = _thumbnail(board_image)
             boards = find_boards(ds, camera, board_image)
             res.board_rms_px = tuple(float(b.reprojection_rms_px[0]) for b in boards)

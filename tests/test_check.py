@@ -122,3 +122,19 @@ def test_readme_own_rig_commands(dataset_copy, tmp_path):
     r = lidarcal("report", dataset_copy, "--out", out / "report.pdf")
     assert r.returncode == 0, r.stderr
     assert (out / "report.pdf").read_bytes()[:5] == b"%PDF-"
+
+
+@pytest.mark.parametrize("content", [b"not a png", None], ids=["corrupt", "missing"])
+def test_an_unreadable_board_image_is_exit_2_naming_it_like_a_missing_one(dataset_copy, tmp_path,
+                                                                          content):
+    # board.png is always fatal (README): a corrupt one was a listed problem (exit 1) while a
+    # missing one was exit 2
+    board = dataset_copy / "board.png"
+    if content is None:
+        board.unlink()
+    else:
+        board.write_bytes(content)
+    r = lidarcal("check", dataset_copy, "--sheet", tmp_path / "sheet.png")
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(f"error: {board}: ")
+    assert "Traceback" not in r.stderr and not (tmp_path / "sheet.png").exists()
