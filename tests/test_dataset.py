@@ -227,3 +227,15 @@ def test_atomic_writes_get_the_umask_permissions_not_mkstemp_private_ones(tmp_pa
     finally:
         os.umask(old)
     assert (tmp_path / "c.json").stat().st_mode & 0o777 == 0o644
+
+
+@pytest.mark.parametrize("rmin,rmax", [(5000.0, 3000.0), (-10.0, 3000.0)])
+def test_lidar_range_limits_must_be_ordered_and_non_negative(tmp_path, rmin, rmax):
+    """range_min_mm above range_max_mm was found only scan by scan (every return 'outside');
+    dataset.json is named instead."""
+    meta = json.loads(json.dumps(DATASET_JSON))
+    meta["lidar"].update(range_min_mm=rmin, range_max_mm=rmax)
+    root = make_dataset(tmp_path / "ds", meta=meta)
+    with pytest.raises(DatasetError, match=r"range_min_mm .* range_max_mm") as e:
+        load_dataset(root)
+    assert str(e.value).startswith(str(root / "dataset.json"))

@@ -252,6 +252,9 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
         raise DatasetError(jpath, "'lidar' angles must satisfy angle_min < angle_max, step > 0")
     rmin = _num(ld.get("range_min_mm", 0.0), jpath, "lidar.range_min_mm")
     rmax = _num(ld.get("range_max_mm", 1e9), jpath, "lidar.range_max_mm", positive=True)
+    if not 0 <= rmin < rmax:
+        raise DatasetError(jpath, f"'lidar' needs 0 <= range_min_mm < range_max_mm, got {rmin:g} and "
+                                  f"{rmax:g}; fix dataset.json")
     hint = ld.get("z_axis_hint", list(DEFAULT_Z_AXIS_HINT))
     hint_arr = _matrix(hint, (3,), jpath, "lidar.z_axis_hint")
     if np.linalg.norm(hint_arr) == 0:
