@@ -344,6 +344,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]
     psi = np.array([r.psi_deg for r in results])
     samples = [r.pose for r in results]
+    _check_z_axis_hint(ds, samples)
     warnings += _check_angle_scale(ds, psi, samples)
     paper = fit_paper(psi, samples)
     rigid = fit_rigid(psi, samples, init=paper)
@@ -382,6 +383,23 @@ def _apply_skip_policy(ds: Dataset, todo: list[Position], outcomes: list, strict
                            f"only {len(results)} usable position(s), the turntable fit needs at least "
                            f"{MIN_POSITIONS}; capture more positions")
     return results, failed
+
+
+def _check_z_axis_hint(ds: Dataset, samples: list[Pose]) -> None:
+    """The hint must pick the mirror assignment (section 1.5, :func:`lidarcal.pose.single_shot_pose`):
+    within ~6 deg of perpendicular to the samples' z axis (median ``|cos| < 0.1``) the choice is
+    a coin toss, so stop, naming dataset.json and the z axis found."""
+    dots = np.array([q.info.get("hint_dot", 1.0) for q in samples])
+    if np.median(np.abs(dots)) >= 0.1:
+        return
+    hint = np.asarray(ds.lidar.z_axis_hint, float)
+    z = np.median([q.z_axis for q in samples], axis=0)
+    z = np.round(z / np.linalg.norm(z), 2) + 0.0
+    raise DatasetError(ds.dataset_json,
+                       f"lidar.z_axis_hint {hint.tolist()} is almost perpendicular to the LiDAR's z axis "
+                       f"(+-{z.tolist()} in the camera frame): it cannot tell the pose from its mirror "
+                       "image; set lidar.z_axis_hint to the LiDAR's z direction (the scan plane's "
+                       f"normal, x cross y of the scanner), {z.tolist()} or {(-z + 0.0).tolist()}")
 
 
 def _check_angle_scale(ds: Dataset, psi: np.ndarray, samples: list[Pose]) -> list[str]:

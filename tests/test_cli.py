@@ -431,3 +431,18 @@ def test_skip_of_an_index_that_does_not_exist_is_refused(small_dataset, tmp_path
     assert err.strip() == (f"error: {small_dataset / 'positions.csv'}: --skip 99: no position with "
                            "that index; the indices are 0-3")
     assert not (tmp_path / "calibration.json").exists()
+
+
+def test_a_z_axis_hint_perpendicular_to_the_lidar_z_is_refused(dataset_copy, tmp_path):
+    # the hint [1, 0, 0] is 87 deg from this LiDAR's z axis (camera up): the mirror choice was a
+    # coin toss, calibrated silently (a rig turned 90 deg with the default hint: 74 mm off)
+    dj = dataset_copy / "dataset.json"
+    meta = json.loads(dj.read_text())
+    meta["lidar"]["z_axis_hint"] = [1, 0, 0]
+    dj.write_text(json.dumps(meta))
+    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out",
+                        str(tmp_path / "cal")], capture_output=True, text=True, check=False)
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {dj}: lidar.z_axis_hint") and "perpendicular" in last
+    assert not (tmp_path / "cal" / "calibration.json").exists()
