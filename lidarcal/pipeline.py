@@ -344,7 +344,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]
     psi = np.array([r.psi_deg for r in results])
     samples = [r.pose for r in results]
-    _check_z_axis_hint(ds, samples)
+    warnings += _check_z_axis_hint(ds, samples)
     warnings += _check_angle_scale(ds, psi, samples)
     paper = fit_paper(psi, samples)
     rigid = fit_rigid(psi, samples, init=paper)
@@ -385,16 +385,22 @@ def _apply_skip_policy(ds: Dataset, todo: list[Position], outcomes: list, strict
     return results, failed
 
 
-def _check_z_axis_hint(ds: Dataset, samples: list[Pose]) -> None:
+def _check_z_axis_hint(ds: Dataset, samples: list[Pose]) -> list[str]:
     """The hint must pick the mirror assignment (section 1.5, :func:`lidarcal.pose.single_shot_pose`):
     within ~6 deg of perpendicular to the samples' z axis (median ``|cos| < 0.1``) the choice is
-    a coin toss, so stop, naming dataset.json and the z axis found."""
+    a coin toss, so stop, naming dataset.json and the z axis found; more than 60 deg away
+    (``|cos| < 0.5``, a hint meant for another mounting?) a warning."""
     dots = np.array([q.info.get("hint_dot", 1.0) for q in samples])
-    if np.median(np.abs(dots)) >= 0.1:
-        return
     hint = np.asarray(ds.lidar.z_axis_hint, float)
     z = np.median([q.z_axis for q in samples], axis=0)
     z = np.round(z / np.linalg.norm(z), 2) + 0.0
+    cos = float(np.median(np.abs(dots)))
+    if cos >= 0.5:
+        return []
+    if cos >= 0.1:
+        return [(f"{ds.dataset_json}: lidar.z_axis_hint {hint.tolist()} is "
+                 f"{np.degrees(np.arccos(cos)):.0f} deg from the LiDAR's z axis found ({z.tolist()}); "
+                 "if the LiDAR is mounted otherwise, the pose is its mirror image: check the hint")]
     raise DatasetError(ds.dataset_json,
                        f"lidar.z_axis_hint {hint.tolist()} is almost perpendicular to the LiDAR's z axis "
                        f"(+-{z.tolist()} in the camera frame): it cannot tell the pose from its mirror "

@@ -446,3 +446,16 @@ def test_a_z_axis_hint_perpendicular_to_the_lidar_z_is_refused(dataset_copy, tmp
     last = p.stderr.strip().splitlines()[-1]
     assert last.startswith(f"error: {dj}: lidar.z_axis_hint") and "perpendicular" in last
     assert not (tmp_path / "cal" / "calibration.json").exists()
+
+
+def test_a_z_axis_hint_far_from_the_lidar_z_warns(dataset_copy, tmp_path, capsys):
+    # [0, 0, 1] is 83 deg from this LiDAR's z axis: within 90 deg of the mirror pose's, so it is
+    # chosen; far from any z axis a user would write for it: said
+    dj = dataset_copy / "dataset.json"
+    meta = json.loads(dj.read_text())
+    meta["lidar"]["z_axis_hint"] = [0, 0, 1]
+    dj.write_text(json.dumps(meta))
+    code, _, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path), "--method", "rigid"],
+                       capsys)
+    assert code == 0
+    assert f"warning: {dj}: lidar.z_axis_hint [0.0, 0.0, 1.0] is 8" in err and "mirror image" in err
