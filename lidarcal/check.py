@@ -13,8 +13,8 @@ stripe's core pixels that are saturated (a clipped core biases the sub-pixel
 centre). A one-page contact sheet shows every stripe image with its detections.
 
 Exit status (the CLI): 0 usable, 1 problems (listed, one line each, naming the
-file and what to do), 2 unreadable (``dataset.json`` or ``positions.csv``
-cannot be read; one ``error:`` line).
+file and what to do), 2 unreadable (``dataset.json``, ``positions.csv`` or
+``board.png`` cannot be read; one ``error:`` line).
 """
 
 from __future__ import annotations
@@ -66,11 +66,18 @@ class PositionCheck:
     v_points: tuple[int, int] | None = None  # scan returns on each side of the V
     v_opening_deg: float | None = None
     problems: list[str] = field(default_factory=list)
+    # problems that cost accuracy but leave the position usable by calibrate (a saturated core)
+    quality: list[str] = field(default_factory=list)
     thumbnail: np.ndarray | None = field(default=None, repr=False)
     thumb_scale: float = 1.0
 
     @property
     def ok(self) -> bool:
+        return not self.problems and not self.quality
+
+    @property
+    def detected(self) -> bool:
+        """Every detection succeeded: ``calibrate`` uses this position."""
         return not self.problems
 
     @property
@@ -94,7 +101,7 @@ class CheckResult:
 
     @property
     def all_problems(self) -> list[str]:
-        return self.problems + [p for pos in self.positions for p in pos.problems]
+        return self.problems + [p for pos in self.positions for p in pos.problems + pos.quality]
 
     @property
     def usable(self) -> bool:
@@ -174,7 +181,7 @@ def _check_position(pos: Position, camera: CameraModel | None, boards, lidar, rh
             out.problems.append(f"{pos.stripe_image}: board {k}: {problem}; is the stripe on both "
                                 f"boards, bright enough, and lidar.laser_colour right?{drop}")
         if out.saturated_share > MAX_SATURATED_SHARE:
-            out.problems.append(f"{pos.stripe_image}: {100 * out.saturated_share:.0f} % of the "
+            out.quality.append(f"{pos.stripe_image}: {100 * out.saturated_share:.0f} % of the "
                                 "stripe's core pixels are saturated; lower the exposure or the "
                                 "gain so the stripe's peak stays below full scale")
         if not few:
@@ -202,7 +209,7 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     """Read a dataset and run the per-position detections, without the fits.
 
     Raises :class:`DatasetError` only when the dataset cannot be read at all
-    (``dataset.json``, ``positions.csv``); everything else is listed in the result.
+    (``dataset.json``, ``positions.csv``, ``board.png``); everything else is listed in the result.
     """
     from .pipeline import (
         MIN_POSITIONS,
@@ -223,8 +230,9 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     except DatasetError as e:
         res.problems.append(str(e))
     if camera is not None:
+        # an unreadable board.png is fatal, as a missing one is (and as in calibrate)
+        board_image = read_image(ds.board_image, camera.image_size)
         try:
-            board_image = read_image(ds.board_image, camera.image_size)
             res.board_thumbnail, res.board_thumb_scale = _thumbnail(board_image)
             boards = find_boards(ds, camera, board_image)
             res.board_rms_px = tuple(float(b.reprojection_rms_px[0]) for b in boards)
@@ -246,7 +254,7 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     if len(steps) and steps.max() > 1.5 * steps.min():
         res.notes.append(f"the angle steps vary from {steps.min():g} to {steps.max():g} deg "
                          f"(median {s.psi_step_deg:g})")
-    good = [p for p in res.positions if p.ok]
+    good = [p for p in res.positions if p.detected]
     res.notes += _setup_warnings(np.array([p.psi_deg for p in good]) if good else psi, good)
     if boards is not None and len(good) < MIN_POSITIONS:
         res.problems.append(f"{ds.root / 'positions.csv'}: only {len(good)} usable position(s), "

@@ -74,6 +74,7 @@ LiDAR pose; measured on simulated rigs against the true poses) and is left out.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -344,8 +345,32 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
     table = pd.DataFrame(out)
     # the range offset's 1-sigma (calibration.json ranging) propagated into every diameter
     table.attrs["edge_model"] = {**edge.to_dict(), "range_offset_sigma_mm": offset_sigma}
-    table.attrs["warnings"] = list(edge.warnings)
+    table.attrs["warnings"] = _other_rig_warnings(ds, calibration) + list(edge.warnings)
     return table
+
+
+def _other_rig_warnings(ds, calibration) -> list[str]:
+    """A ``calibration.json`` made from another dataset folder, or with another camera, measures
+    this one only if the rig is the same and has not moved: say so (eq. 28 trusts the pose)."""
+    import json
+    import os
+
+    if hasattr(calibration, "pose"):
+        return []
+    try:
+        cal = json.loads(Path(calibration).read_text())
+    except (OSError, ValueError):
+        return []
+    src = cal.get("dataset")
+    if not isinstance(src, str) or os.path.realpath(src) == os.path.realpath(ds.root):
+        return []
+    cam, own = cal.get("camera") or {}, ds.camera
+    same_camera = own is None or not cam.get("K") or (
+        list(cam.get("image_size", [])) == list(own.image_size)
+        and np.allclose(np.asarray(cam["K"], float), own.K, rtol=1e-6, atol=1e-6))
+    return [f"{calibration}: made from another dataset ({src})"
+            + ("" if same_camera else " with another camera (K or image_size differ)")
+            + f"; measuring {ds.root} with it assumes the same rig, unmoved since that calibration"]
 
 
 def table2_columns(measurements: dict) -> dict[str, list]:

@@ -13,7 +13,6 @@ Functions return a :class:`matplotlib.figure.Figure` (no pyplot);
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -80,17 +79,9 @@ def lidar_on_image(image: np.ndarray, camera: CameraModel, R: np.ndarray, T: np.
 
 def save_figure(fig: Figure, path: str | os.PathLike, dpi: int = 100) -> Path:
     """Write ``fig`` as a PNG through a temporary file and a rename (never half-written)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=dpi, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    from .io.dataset import write_atomic
+
+    return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"), ".png")
 
 
 def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLike, index: int,

@@ -52,7 +52,7 @@ from .stripe import (
     camera_lines,
     estimate_reflectance_ratio,
 )
-from .turntable import fit_paper, fit_rigid
+from .turntable import angle_scale, fit_paper, fit_rigid
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -281,6 +281,11 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
 
     ranging_prior(ds.raw, ds.dataset_json)  # lidar.range_offset_* checked before any work
     skip = set(skip)
+    unknown = sorted(skip - {p.index for p in ds.positions})
+    if unknown:
+        raise DatasetError(ds.root / "positions.csv",
+                           f"--skip {' '.join(map(str, unknown))}: no position with that index; "
+                           f"the indices are {_index_ranges([p.index for p in ds.positions])}")
     todo = [p for p in ds.positions if p.index not in skip]
     own = images is None
     if own:
@@ -301,6 +306,17 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
         _WORKER.pop("images", None)
         if own:
             images.close()
+
+
+def _index_ranges(indices: list[int]) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` as ``0-2, 5, 7-8``."""
+    idx, parts, start = sorted(indices), [], None
+    for k, i in enumerate(idx):
+        start = i if start is None else start
+        if k + 1 == len(idx) or idx[k + 1] != i + 1:
+            parts.append(f"{start}" if start == i else f"{start}-{i}")
+            start = None
+    return ", ".join(parts)
 
 
 @contextmanager
@@ -341,6 +357,8 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]
     psi = np.array([r.psi_deg for r in results])
     samples = [r.pose for r in results]
+    warnings += _check_z_axis_hint(ds, samples)
+    warnings += _check_angle_scale(ds, psi, samples)
     paper = fit_paper(psi, samples)
     rigid = fit_rigid(psi, samples, init=paper)
     warnings += _setup_warnings(psi, results)
@@ -379,6 +397,46 @@ def _apply_skip_policy(ds: Dataset, todo: list[Position], outcomes: list, strict
                            f"only {len(results)} usable position(s), the turntable fit needs at least "
                            f"{MIN_POSITIONS}; capture more positions")
     return results, failed
+
+
+def _check_z_axis_hint(ds: Dataset, samples: list[Pose]) -> list[str]:
+    """The hint must pick the mirror assignment (section 1.5, :func:`lidarcal.pose.single_shot_pose`):
+    within ~6 deg of perpendicular to the samples' z axis (median ``|cos| < 0.1``) the choice is
+    a coin toss, so stop, naming dataset.json and the z axis found; more than 60 deg away
+    (``|cos| < 0.5``, a hint meant for another mounting?) a warning."""
+    dots = np.array([q.info.get("hint_dot", 1.0) for q in samples])
+    hint = np.asarray(ds.lidar.z_axis_hint, float)
+    z = np.median([q.z_axis for q in samples], axis=0)
+    z = np.round(z / np.linalg.norm(z), 2) + 0.0
+    cos = float(np.median(np.abs(dots)))
+    if cos >= 0.5:
+        return []
+    if cos >= 0.1:
+        return [(f"{ds.dataset_json}: lidar.z_axis_hint {hint.tolist()} is "
+                 f"{np.degrees(np.arccos(cos)):.0f} deg from the LiDAR's z axis found ({z.tolist()}); "
+                 "if the LiDAR is mounted otherwise, the pose is its mirror image: check the hint")]
+    raise DatasetError(ds.dataset_json,
+                       f"lidar.z_axis_hint {hint.tolist()} is almost perpendicular to the LiDAR's z axis "
+                       f"(+-{z.tolist()} in the camera frame): it cannot tell the pose from its mirror "
+                       "image; set lidar.z_axis_hint to the LiDAR's z direction (the scan plane's "
+                       f"normal, x cross y of the scanner), {z.tolist()} or {(-z + 0.0).tolist()}")
+
+
+def _check_angle_scale(ds: Dataset, psi: np.ndarray, samples: list[Pose]) -> list[str]:
+    """The reported angles must measure the samples' turn (:func:`lidarcal.turntable.angle_scale`):
+    off by more than 10 % (and 0.2 deg, 4x the worst sample noise seen) is fatal, naming
+    positions.csv; by 3-10 % a warning."""
+    sc = angle_scale(psi, samples)
+    off = abs(sc.turned_deg - sc.reported_deg)
+    text = (f"the single-shot poses turn {sc.turned_deg:.4g} deg between positions whose psi_deg "
+            f"differ by {sc.reported_deg:.4g} deg (median of {sc.pairs} pairs, ratio {sc.ratio:.3g})")
+    if off > 0.2 and abs(sc.ratio - 1.0) > 0.10:
+        raise DatasetError(ds.root / "positions.csv",
+                           f"{text}; psi_deg must be the turntable angle in degrees (radians? encoder "
+                           "counts? a gear ratio?)")
+    if off > 0.2 and abs(sc.ratio - 1.0) > 0.03:
+        return [f"{ds.root / 'positions.csv'}: {text}; is psi_deg the turntable angle in degrees?"]
+    return []
 
 
 def _setup_warnings(psi: np.ndarray, results: list[PositionResult]) -> list[str]:

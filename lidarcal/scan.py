@@ -123,7 +123,7 @@ def _trim_outer(beams: np.ndarray, resid: np.ndarray, scale: float, from_start: 
 
 def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: float | None = None,
             alpha: float | None = None, alpha_tol_deg: float = 15.0,
-            opening_deg: tuple[float, float] = (90.0, 170.0), min_points: int = 8,
+            opening_deg: tuple[float, float] | None = None, min_points: int = 8,
             max_gap: int = 4, max_trim: int = 3) -> VSegments:
     """Find the two board segments of the V in one scan (section 1.4).
 
@@ -152,8 +152,10 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
     alpha : float, optional
         The camera's V angle (rad): when given, only pairs whose free opening is
         within ``alpha_tol_deg`` of it qualify.
-    opening_deg : (float, float)
-        Accepted opening range of the V, degrees.
+    opening_deg : (float, float), optional
+        Accepted opening range of the V, degrees. Default: ``alpha`` +-
+        ``alpha_tol_deg`` when ``alpha`` is given (a V-board may open at any
+        angle: the camera says which), else 90-170 deg.
     min_points : int
         Fewest points of a board segment.
 
@@ -176,6 +178,9 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         raise ValueError(f"found {len(segments)} board segment{'s' if len(segments) != 1 else ''}, "
                          "expected 2 (the scan plane must cross both boards of the V)")
 
+    if opening_deg is None:
+        opening_deg = ((max(1.0, np.degrees(alpha) - alpha_tol_deg), min(179.0, np.degrees(alpha) + alpha_tol_deg))
+                       if alpha is not None else (90.0, 170.0))
     lo, hi = np.radians(opening_deg)
     candidates = []
     pairs = [(segments[i], segments[j], segments[i + 1:j])
@@ -204,7 +209,7 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
             candidates.append((len(s1.beams) + len(s2.beams), s1, s2, opening))
     if not candidates:
         raise ValueError(f"found {len(segments)} line segments but no pair forms the V "
-                         f"(adjacent, concave, opening {opening_deg[0]:g}-{opening_deg[1]:g} deg"
+                         f"(adjacent, concave, opening {opening_deg[0]:.0f}-{opening_deg[1]:.0f} deg"
                          + (f", within {alpha_tol_deg:g} deg of alpha" if alpha is not None else "")
                          + "); the scan plane must cross both boards")
     candidates.sort(key=lambda c: -c[0])

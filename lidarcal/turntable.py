@@ -128,6 +128,46 @@ def _check_inputs(psi_deg, samples: Sequence[Pose]) -> np.ndarray:
     return psi
 
 
+@dataclass(frozen=True)
+class AngleScale:
+    """How far the single-shot samples turn against the reported angles (:func:`angle_scale`)."""
+
+    turned_deg: float     # median rotation angle between the samples of the compared pairs
+    reported_deg: float   # median reported angle difference of those pairs (wrapped to 0..180)
+    pairs: int
+
+    @property
+    def ratio(self) -> float:
+        return self.turned_deg / self.reported_deg if self.reported_deg > 0 else np.inf
+
+
+def angle_scale(psi_deg, samples: Sequence[Pose]) -> AngleScale:
+    """Do the reported angles measure the turn the samples show? (the premise of eq. 15).
+
+    A rotation about a fixed axis ``k`` by ``dpsi`` turns every pose by exactly
+    ``dpsi`` about ``k``: ``R_j R_i^T = Rot(k, psi_j - psi_i)`` whatever the
+    axis. Over the pairs at least half the span apart, ``k`` is the median of
+    the pairs' rotation vectors over their angle differences, the turn of a
+    pair the component of its rotation vector along ``k`` (the samples' noise
+    across ``k`` then does not lengthen it), and the medians of the turns and
+    of ``|psi_i - psi_j|`` (wrapped to 0..180 deg) are compared; angles in
+    radians, in encoder counts or through a gear ratio show as a ratio far
+    from 1. Robust to a minority of wrong samples (medians).
+    """
+    psi = np.asarray(psi_deg, dtype=float).ravel()
+    R = np.stack([np.asarray(q.R, float) for q in samples])
+    i, j = np.triu_indices(len(psi), 1)
+    dpsi = np.abs(psi[j] - psi[i])
+    far = dpsi >= 0.5 * dpsi.max()
+    i, j, dpsi = i[far], j[far], dpsi[far]
+    rv = Rotation.from_matrix(R[j] @ np.transpose(R[i], (0, 2, 1))).as_rotvec()  # rad
+    k = unit(np.median(rv / (psi[j] - psi[i])[:, None], axis=0))
+    turned = np.degrees(np.abs(rv @ k))
+    wrapped = np.mod(dpsi, 360.0)
+    wrapped = np.minimum(wrapped, 360.0 - wrapped)
+    return AngleScale(float(np.median(turned)), float(np.median(wrapped)), len(i))
+
+
 def _poses_out(psi_deg, R: np.ndarray, T: np.ndarray) -> Pose | list[Pose]:
     if np.ndim(psi_deg) == 0:
         return Pose(R[0], T[0])

@@ -78,6 +78,19 @@ def test_a_saturated_stripe_is_a_problem(dataset_copy):
     assert not list(dataset_copy.glob("*-check.png"))  # --no-sheet writes none
 
 
+def test_saturated_stripes_are_problems_but_the_positions_still_count(dataset_copy):
+    # calibrate uses saturated stripes (their centres come from the unclipped flanks), so check
+    # must not call every position unusable when all are saturated, only name each image
+    for path in sorted((dataset_copy / "stripes").glob("*.png")):
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), np.clip(img.astype(np.int32) * 3, 0, 255).astype(np.uint8))
+    res = check_dataset(dataset_copy)
+    assert not res.usable
+    assert all(p.detected and not p.ok and p.saturated_share > 0.05 for p in res.positions)
+    assert not any("usable position" in p for p in res.problems), res.problems
+    assert sum("saturated; lower the exposure" in p for p in res.all_problems) == 4
+
+
 def test_a_corrupt_stripe_image_and_a_missing_scan_are_problems(dataset_copy):
     (dataset_copy / "stripes" / "0000.png").write_bytes(b"not a png")
     (dataset_copy / "scans" / "0003.csv").unlink()
@@ -109,3 +122,19 @@ def test_readme_own_rig_commands(dataset_copy, tmp_path):
     r = lidarcal("report", dataset_copy, "--out", out / "report.pdf")
     assert r.returncode == 0, r.stderr
     assert (out / "report.pdf").read_bytes()[:5] == b"%PDF-"
+
+
+@pytest.mark.parametrize("content", [b"not a png", None], ids=["corrupt", "missing"])
+def test_an_unreadable_board_image_is_exit_2_naming_it_like_a_missing_one(dataset_copy, tmp_path,
+                                                                          content):
+    # board.png is always fatal (README): a corrupt one was a listed problem (exit 1) while a
+    # missing one was exit 2
+    board = dataset_copy / "board.png"
+    if content is None:
+        board.unlink()
+    else:
+        board.write_bytes(content)
+    r = lidarcal("check", dataset_copy, "--sheet", tmp_path / "sheet.png")
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(f"error: {board}: ")
+    assert "Traceback" not in r.stderr and not (tmp_path / "sheet.png").exists()

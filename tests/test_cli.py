@@ -406,3 +406,56 @@ def test_skipped_position_is_listed_in_the_report(dataset_copy, tmp_path, capsys
     skipped = src.split("== Skipped positions")[1].split("== Warnings")[0]
     assert esc(named)[2:-1] in skipped and "[1]" in skipped
     assert "1 position(s) skipped" in src
+
+
+def test_angles_in_radians_are_refused_naming_positions_csv(dataset_copy, tmp_path):
+    # psi_deg written in radians: the samples turn 57 times more than the angles say; calibrating
+    # anyway gave poses a metre off with exit 0
+    pos = dataset_copy / "positions.csv"
+    df = pd.read_csv(pos)
+    df["psi_deg"] = np.radians(df["psi_deg"])
+    df.to_csv(pos, index=False)
+    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out",
+                        str(tmp_path / "cal")], capture_output=True, text=True, check=False)
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {pos}: the single-shot poses turn") and "radians?" in last
+    assert not (tmp_path / "cal" / "calibration.json").exists()
+
+
+def test_skip_of_an_index_that_does_not_exist_is_refused(small_dataset, tmp_path, capsys):
+    # a typo in --skip used to be recorded as a skipped position and calibrate ran on
+    code, _, err = run(["calibrate", str(small_dataset), "--out", str(tmp_path), "--skip", "1", "99"],
+                       capsys)
+    assert code == 2
+    assert err.strip() == (f"error: {small_dataset / 'positions.csv'}: --skip 99: no position with "
+                           "that index; the indices are 0-3")
+    assert not (tmp_path / "calibration.json").exists()
+
+
+def test_a_z_axis_hint_perpendicular_to_the_lidar_z_is_refused(dataset_copy, tmp_path):
+    # the hint [1, 0, 0] is 87 deg from this LiDAR's z axis (camera up): the mirror choice was a
+    # coin toss, calibrated silently (a rig turned 90 deg with the default hint: 74 mm off)
+    dj = dataset_copy / "dataset.json"
+    meta = json.loads(dj.read_text())
+    meta["lidar"]["z_axis_hint"] = [1, 0, 0]
+    dj.write_text(json.dumps(meta))
+    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out",
+                        str(tmp_path / "cal")], capture_output=True, text=True, check=False)
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {dj}: lidar.z_axis_hint") and "perpendicular" in last
+    assert not (tmp_path / "cal" / "calibration.json").exists()
+
+
+def test_a_z_axis_hint_far_from_the_lidar_z_warns(dataset_copy, tmp_path, capsys):
+    # [0, 0, 1] is 83 deg from this LiDAR's z axis: within 90 deg of the mirror pose's, so it is
+    # chosen; far from any z axis a user would write for it: said
+    dj = dataset_copy / "dataset.json"
+    meta = json.loads(dj.read_text())
+    meta["lidar"]["z_axis_hint"] = [0, 0, 1]
+    dj.write_text(json.dumps(meta))
+    code, _, err = run(["calibrate", str(dataset_copy), "--out", str(tmp_path), "--method", "rigid"],
+                       capsys)
+    assert code == 0
+    assert f"warning: {dj}: lidar.z_axis_hint [0.0, 0.0, 1.0] is 8" in err and "mirror image" in err

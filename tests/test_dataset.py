@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -191,3 +192,50 @@ def test_ranges_in_metres_are_named(tmp_path):
     with pytest.raises(DatasetError, match=r"every return is outside .*ranges must be in mm") as e:
         read_scan(p, ds.lidar)
     assert str(e.value).startswith(str(p))
+
+
+def test_scan_angles_must_fit_the_lidar_of_dataset_json(tmp_path):
+    """Beam angles in radians (or from a LiDAR configured wider than dataset.json says) are named;
+    rounded angles, a step given to 4 digits and omitted rows are accepted."""
+    from lidarcal.io.dataset import LidarSpec
+
+    lidar = LidarSpec(-35.0, 35.0, 0.0833, 700.0, 3000.0)
+    ang = -35.0 + np.arange(841) / 12.0
+
+    def scan(name, a, keep=slice(None), digits=2):
+        p = tmp_path / name
+        rows = [f"{x:.{digits}f},{1500 + 100 * np.cos(np.radians(x)):.1f}\n" for x in a[keep]]
+        p.write_text("angle_deg,range_mm\n" + "".join(rows))
+        return p
+
+    got, _ = read_scan(scan("ok.csv", ang, slice(None, None, 2)), lidar)
+    assert len(got) == 421
+    p = scan("rad.csv", np.radians(ang), digits=6)
+    with pytest.raises(DatasetError, match=r"beam angles .* radians") as e:
+        read_scan(p, lidar)
+    assert str(e.value).startswith(str(p))
+    with pytest.raises(DatasetError, match=r"outside dataset.json's lidar.angle_min_deg"):
+        read_scan(scan("wide.csv", -135.0 + np.arange(1081) / 4.0), lidar)
+
+
+def test_atomic_writes_get_the_umask_permissions_not_mkstemp_private_ones(tmp_path):
+    """calibration.json and every other output are readable as the user's umask says (mkstemp's
+    0600 survived the rename: a lab's other accounts could not read the results)."""
+    old = os.umask(0o022)
+    try:
+        write_json_atomic(tmp_path / "c.json", {"a": 1})
+    finally:
+        os.umask(old)
+    assert (tmp_path / "c.json").stat().st_mode & 0o777 == 0o644
+
+
+@pytest.mark.parametrize("rmin,rmax", [(5000.0, 3000.0), (-10.0, 3000.0)])
+def test_lidar_range_limits_must_be_ordered_and_non_negative(tmp_path, rmin, rmax):
+    """range_min_mm above range_max_mm was found only scan by scan (every return 'outside');
+    dataset.json is named instead."""
+    meta = json.loads(json.dumps(DATASET_JSON))
+    meta["lidar"].update(range_min_mm=rmin, range_max_mm=rmax)
+    root = make_dataset(tmp_path / "ds", meta=meta)
+    with pytest.raises(DatasetError, match=r"range_min_mm .* range_max_mm") as e:
+        load_dataset(root)
+    assert str(e.value).startswith(str(root / "dataset.json"))

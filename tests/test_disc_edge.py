@@ -296,3 +296,22 @@ def test_the_reference_is_chosen_from_the_data():
     assert reference_choice(ds(140.0, 140.0)) == "disc_0"
     assert reference_choice(ds(None, None)) is None
     assert reference_choice(ds(140.0)) is None and reference_choice(ds()) is None
+
+
+@pytest.mark.skipif(not (SIM / "truth.json").is_file(), reason="bundled dataset not generated")
+def test_a_calibration_of_another_dataset_and_camera_is_named(tmp_path):
+    # measuring with another rig's calibration.json gave wrong diameters without a word
+    from test_cloud import truth_calibration
+
+    from lidarcal.disc import measure_dataset
+
+    cal = truth_calibration(SIM, tmp_path / "cal")
+    d = json.loads(cal.read_text())
+    cal.write_text(json.dumps({**d, "dataset": str(SIM)}))
+    assert not any("another dataset" in w for w in measure_dataset(SIM, cal).attrs["warnings"])
+    cal.write_text(json.dumps({**d, "dataset": str(tmp_path / "other_rig"),
+                               "camera": {"K": [[1000, 0, 640], [0, 1000, 360], [0, 0, 1]],
+                                          "image_size": [1280, 720]}}))
+    w = [w for w in measure_dataset(SIM, cal).attrs["warnings"] if "another dataset" in w]
+    assert len(w) == 1 and w[0].startswith(f"{cal}: made from another dataset")
+    assert "with another camera" in w[0] and "same rig, unmoved" in w[0]

@@ -404,3 +404,16 @@ def test_split_and_fit_on_simulated_paper_rig_dataset():
         errs.append(e["centre_mm"])
     print(f"paper_rig: single-shot centre error (exact camera lines) mean {np.mean(errs):.3f} mm, "
           f"max {np.max(errs):.3f} mm")
+
+
+@pytest.mark.parametrize("opening", [(60.0, 75.0), (75.0, 88.0)])
+def test_split_v_finds_a_v_outside_the_usual_opening_when_alpha_says_so(opening):
+    # a V-board opened at 60-88 deg: the camera's alpha, not a fixed 90-170 deg
+    # window, decides which pair of pieces is the V
+    for seed in range(3):
+        rng = np.random.default_rng(100 + seed)
+        tr = make_truth(rng, opening_deg=opening)
+        ang, rho, lab = simulate_scan(tr, rng, sigma_mm=1.0)
+        v = split_v(ang, rho, alpha=tr.alpha)
+        assert {lab[v.index1[5]], lab[v.index2[5]]} == {BOARD1, BOARD2}
+        assert abs(v.opening_deg - np.degrees(tr.alpha)) < 2.0

@@ -396,3 +396,20 @@ def test_stored_rigid_formula_is_what_pose_computes(psi, seed):
     T = a + Q @ (np.array(d["pose_ref"]["T_mm"]) - a)
     p = m.pose(psi)
     assert np.allclose(R, p.R, atol=1e-12) and np.allclose(T, p.T, atol=1e-9)
+
+
+# ------------------------------------------------------------------ the reported angles' scale
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_angle_scale_is_one_for_degrees_and_names_radians_and_gears(seed):
+    # the samples turn by |dpsi| whatever the axis: ratio 1 in degrees (to the sample noise),
+    # 1/57.3 for the same angles written in radians, 1/0.9 for a 0.9 gear ratio
+    from lidarcal.turntable import angle_scale
+
+    _truth, psi, _true, samples = rig(seed, 40, 0.5)
+    sc = angle_scale(psi, samples)
+    assert abs(sc.turned_deg - sc.reported_deg) < 0.05 and sc.pairs > 100
+    assert abs(angle_scale(np.radians(psi), samples).ratio - 1.0) > 10
+    assert angle_scale(psi / 0.9, samples).ratio == pytest.approx(0.9, abs=0.01)
+    assert angle_scale(np.degrees(psi), samples).ratio < 0.5  # wrapped past 180 deg, still far off

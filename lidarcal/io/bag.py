@@ -51,6 +51,7 @@ from .bag_frames import COMPRESSED, LitSplit, frame_brightness, image_from_msg, 
 from .dataset import (
     DATASET_FORMAT,
     DatasetError,
+    current_umask,
     write_json_atomic,
 )
 from .rig import RigFile, read_rig
@@ -392,7 +393,9 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise DatasetError(out, "exists and is not empty; choose another --out or pass --overwrite")
     out.parent.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f".{out.name}.import-", dir=out.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.import-", dir=out.parent))
+    os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp's 0700 would survive the rename
+    return tmp
 
 
 def _finish_out(tmp: Path, out: Path) -> None:

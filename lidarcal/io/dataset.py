@@ -252,6 +252,9 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
         raise DatasetError(jpath, "'lidar' angles must satisfy angle_min < angle_max, step > 0")
     rmin = _num(ld.get("range_min_mm", 0.0), jpath, "lidar.range_min_mm")
     rmax = _num(ld.get("range_max_mm", 1e9), jpath, "lidar.range_max_mm", positive=True)
+    if not 0 <= rmin < rmax:
+        raise DatasetError(jpath, f"'lidar' needs 0 <= range_min_mm < range_max_mm, got {rmin:g} and "
+                                  f"{rmax:g}; fix dataset.json")
     hint = ld.get("z_axis_hint", list(DEFAULT_Z_AXIS_HINT))
     hint_arr = _matrix(hint, (3,), jpath, "lidar.z_axis_hint")
     if np.linalg.norm(hint_arr) == 0:
@@ -494,7 +497,26 @@ def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, n
     rng = _ranges(cols["range_mm"], path, lidar)
     if np.any(np.diff(ang) <= 0):
         raise DatasetError(path, "angles are not strictly ascending; one row per beam expected")
+    if lidar is not None:
+        _check_beam_angles(path, ang, lidar)
     return ang, rng
+
+
+def _check_beam_angles(path: Path, ang: np.ndarray, lidar: LidarSpec) -> None:
+    """The scan's beams lie on dataset.json's layout (beam ``k`` at ``angle_min_deg + k *
+    angle_step_deg``): not closer than half a step on average (angles in radians) and inside
+    ``angle_min_deg..angle_max_deg`` (two steps of slack). Rows may be omitted or rounded."""
+    step = lidar.angle_step_deg
+    if len(ang) >= 2 and (ang[-1] - ang[0]) / (len(ang) - 1) < 0.5 * step:
+        raise DatasetError(path, f"beam angles {ang[0]:g}..{ang[-1]:g} are "
+                                 f"{(ang[-1] - ang[0]) / (len(ang) - 1):.3g} apart on average, less "
+                                 f"than lidar.angle_step_deg {step:g} of dataset.json; are they in "
+                                 "radians? angle_deg must be degrees")
+    tol = 2 * step + 0.01
+    if ang[0] < lidar.angle_min_deg - tol or ang[-1] > lidar.angle_max_deg + tol:
+        raise DatasetError(path, f"beam angles {ang[0]:g}..{ang[-1]:g} deg lie outside dataset.json's "
+                                 f"lidar.angle_min_deg..angle_max_deg ({lidar.angle_min_deg:g}.."
+                                 f"{lidar.angle_max_deg:g}); fix dataset.json's lidar block or the scan")
 
 
 def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
@@ -582,11 +604,19 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], object],
     os.close(fd)
     try:
         write(Path(tmp))
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp's 0600 would survive the rename
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def current_umask() -> int:
+    """The process's umask (read by setting and restoring it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
