@@ -37,32 +37,73 @@ def _int_percentile(v: np.ndarray, q: float) -> float:
     return _hist_percentile(np.bincount(v.ravel()), q)
 
 
+def _noise_rows(shape: tuple[int, ...]) -> int:
+    """Row step of :func:`_noise_sigma`: every other row, sparser on large crops so that
+    some 60 000 to 120 000 differences remain (a MAD needs no more)."""
+    return 2 * int(np.clip((shape[0] * shape[1]) // 240_000, 1, 4))
+
+
 def _noise_sigma(img: np.ndarray, mask: np.ndarray, raw8: np.ndarray | None = None) -> float:
     """Robust sensor-noise sigma (DN) from horizontal pixel differences inside ``mask``.
 
-    ``raw8``: the same image as uint8; the medians are then taken exactly from a
-    histogram of the (integer) differences, in O(n).
+    The differences of every ``k``-th row (:func:`_noise_rows`). ``raw8``: the same image
+    as uint8; the medians are then taken exactly from a histogram of the (integer)
+    differences, in O(n), computed in 8 bits (``d + 128`` saturated: the tails beyond
+    +-127 DN stay beyond the median and its MAD; otherwise the 9-bit histogram is used).
     """
-    m = mask[::2, 1:] & mask[::2, :-1]
+    k = _noise_rows(mask.shape)
+    m = _derived(mask, ("noise", k), lambda: mask[::k, 1:] & mask[::k, :-1])
     if raw8 is not None:
-        a = raw8[::2]
-        key = a[:, 1:].astype(np.uint16) + np.uint16(256) - a[:, :-1]  # d + 256, in 1..511
-        if np.count_nonzero(m) >= 10:
-            key *= m  # 0 = outside the mask
-        hist = cv2.calcHist([key], [0], None, [512], [0, 512]).ravel().astype(np.int64)[1:]
+        a = raw8[::k]
+        masked = _derived(mask, ("noise_n", k), lambda: np.count_nonzero(m) >= 10)
+        v = cv2.addWeighted(a[:, 1:], 1.0, a[:, :-1], -1.0, 128.0)  # saturate(d + 128)
+        hist = cv2.calcHist([v], [0], m.view(np.uint8) if masked else None, [256],
+                            [0, 256]).ravel().astype(np.int64)
         if hist.sum() == 0:
             return 0.5
-        med2 = round(2 * _hist_percentile(hist, 50.0)) - 510  # 2 x median, an integer
+        med2 = round(2 * _hist_percentile(hist, 50.0)) - 256  # 2 x median, an integer
         # histogram of 2 |d - median| folded from the one of d
+        dev = np.abs(2 * (np.arange(256) - 128) - med2)
+        mad = _hist_percentile(np.bincount(dev, weights=hist).astype(np.int64), 50.0) / 2.0
+        if abs(med2) / 2.0 + mad < 120.0:
+            return float(max(MAD_TO_SIGMA * mad / np.sqrt(2.0), 0.5))
+        key = a[:, 1:].astype(np.uint16) + np.uint16(256) - a[:, :-1]  # d + 256, in 1..511
+        if masked:
+            key *= m  # 0 = outside the mask
+        hist = cv2.calcHist([key], [0], None, [512], [0, 512]).ravel().astype(np.int64)[1:]
+        med2 = round(2 * _hist_percentile(hist, 50.0)) - 510
         dev = np.abs(2 * (np.arange(511) - 255) - med2)
         mad = _hist_percentile(np.bincount(dev, weights=hist).astype(np.int64), 50.0) / 2.0
         return float(max(MAD_TO_SIGMA * mad / np.sqrt(2.0), 0.5))
-    d = np.diff(img[::2], axis=1)  # every other row is plenty for a MAD
+    d = np.diff(img[::k], axis=1)
     v = d[m]
     if v.size < 10:
         v = d.ravel()
     mad = np.median(np.abs(v - np.median(v)))
     return float(max(MAD_TO_SIGMA * mad / np.sqrt(2.0), 0.5))
+
+
+_DERIVED: list = []  # [(mask, key, value)]: arrays derived from the read-only board masks
+
+
+def _derived(mask: np.ndarray, key, make):
+    """``make()``, kept for the next image when ``mask`` is a view of a read-only array (the
+    cached board masks of :func:`lidarcal.stripe._board_crop` serve every stripe image)."""
+    root = mask
+    while isinstance(root.base, np.ndarray):
+        root = root.base
+    if root.flags.writeable or mask.flags.writeable:
+        return make()
+    key = (key, mask.shape, mask.strides, mask.__array_interface__["data"][0])
+    for m, k, v in _DERIVED:
+        if m is root and k == key:
+            return v
+    v = make()
+    if isinstance(v, np.ndarray):
+        v.flags.writeable = False
+    _DERIVED.insert(0, (root, key, v))
+    del _DERIVED[16:]
+    return v
 
 
 def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
@@ -75,17 +116,26 @@ def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
     in 8 bits on the image halved (``INTER_AREA``) first, and at full
     resolution only when that finds no line: the line only guides the
     column windows of :func:`_centres_by_column`, which re-centre on the stripe.
+    (Halved again, a lit chessboard without a laser can pass for a stripe.)
     """
     if raw8 is not None and min(raw8.shape) >= 64:
-        h, w = raw8.shape[0] // 2, raw8.shape[1] // 2
-        small = cv2.resize(raw8[:2 * h, :2 * w], (w, h), interpolation=cv2.INTER_AREA)
-        msmall = mask[:2 * h:2, :2 * w:2] & mask[1:2 * h:2, 1:2 * w:2]
+        small = _halved(raw8)
+        h, w = small.shape
+        msmall = _derived(mask, "halved", lambda: mask[:2 * h:2, :2 * w:2]
+                          & mask[1:2 * h:2, 1:2 * w:2])
         found = _bright_line(cv2.GaussianBlur(small, (0, 0), 0.75), msmall, noise, scale=2.0)
         if found is not None:
             return found
     if raw8 is not None:
         return _bright_line(cv2.GaussianBlur(raw8, (0, 0), 1.5), mask, noise)
     return _bright_line(cv2.GaussianBlur(img, (0, 0), 1.5), mask, noise)
+
+
+def _halved(img: np.ndarray) -> np.ndarray:
+    """``img`` reduced 2 times by averaging 2 x 2 blocks (``INTER_AREA``; an odd last row or
+    column is dropped)."""
+    h, w = img.shape[0] // 2, img.shape[1] // 2
+    return cv2.resize(img[:2 * h, :2 * w], (w, h), interpolation=cv2.INTER_AREA)
 
 
 def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 1.0
@@ -129,22 +179,37 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
     Returns centres (profile index units) and the summed signal in the window.
     Symmetric windows make the fixed point the centre of a symmetric stripe
     profile, including one clipped at saturation. Stops early once no centre
-    moves by more than ``tol`` px.
+    moves by more than ``tol`` px. Sample ``j`` weighs the overlap of its cell
+    ``[j - 1/2, j + 1/2]`` with the window (fractional at the edges: the centroid is
+    continuous in c), so both window sums are differences of running sums of the
+    profile, O(1) per profile and step (``half >= 1/2``).
     """
-    idx = np.arange(prof.shape[1])[None, :]
+    n_rows, n = prof.shape
+    s = np.clip(prof, 0, None).astype(np.float64)
+    # running sums along each profile from integral images (rows r + 1 minus rows r)
+    cs = cv2.integral(s, sdepth=cv2.CV_64F)
+    cj = cv2.integral(s * np.arange(n), sdepth=cv2.CV_64F)
     c = start.astype(float).copy()
-    s = np.clip(prof, 0, None)
-    mass = np.zeros(len(c))
-    act = np.arange(len(c))  # rows still moving; converged rows are left alone
+    mass = np.zeros(n_rows)
+    act = np.arange(n_rows)  # rows still moving; converged rows are left alone
+
+    def running(x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # integrals of s and of j s over cells from -1/2 up to x (clipped to the profile)
+        x = np.clip(x, -0.5, n - 0.5)
+        k = np.minimum(np.floor(x + 0.5).astype(np.intp), n)
+        frac = x + 0.5 - k
+        sk = s[r, np.minimum(k, n - 1)] * frac
+        return (cs[r + 1, k] - cs[r, k] + sk), (cj[r + 1, k] - cj[r, k] + k * sk)
+
     for _ in range(iters):
-        # fractional weights at the window edges keep the centroid continuous in c
-        w = np.clip(half + 0.5 - np.abs(idx - c[act, None]), 0.0, 1.0)
-        ws = w * s[act]
-        m = ws.sum(1)
+        ca = c[act]
+        m_hi, j_hi = running(ca + half, act)
+        m_lo, j_lo = running(ca - half, act)
+        m = m_hi - m_lo
         with np.errstate(invalid="ignore", divide="ignore"):
-            c_new = (ws * idx).sum(1) / m
+            c_new = (j_hi - j_lo) / m
         c_new = np.where(m > 0, c_new, np.nan)
-        moving = np.abs(c_new - c[act]) > tol  # False for NaN: such rows stay NaN
+        moving = np.abs(c_new - ca) > tol  # False for NaN: such rows stay NaN
         c[act], mass[act] = c_new, m
         act = act[moving]
         if act.size == 0:
@@ -156,9 +221,12 @@ def _profiles(img: np.ndarray, xs: np.ndarray, y0: np.ndarray, L: int) -> tuple[
                                                                                np.ndarray]:
     """Column profiles ``img[y0 + k, x]`` for ``k = -L..L`` (M, 2L+1), clipped to the image."""
     H = img.shape[0]
-    top = np.clip(np.round(y0).astype(int) - L, 0, max(H - 2 * L - 1, 0))
-    rows = top[:, None] + np.arange(2 * L + 1)[None, :]
-    rows = np.clip(rows, 0, H - 1)
+    n = 2 * L + 1
+    top = np.clip(np.round(y0).astype(np.intp) - L, 0, max(H - n, 0))
+    if H >= n:  # windows of n rows: one gather of M runs, not M x n single pixels
+        win = np.lib.stride_tricks.sliding_window_view(img, n, axis=0)
+        return win[top, xs].astype(np.float32, copy=False), top
+    rows = np.clip(top[:, None] + np.arange(n)[None, :], 0, H - 1)
     return img[rows, xs[:, None]].astype(np.float32, copy=False), top
 
 
@@ -259,8 +327,7 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
         bsub = None if bsub is None else bsub.T
         c0, t0 = c0[::-1], t0[::-1]
     slope = t0[1] / t0[0]
-    res = _centres_by_column(np.ascontiguousarray(sub), msub, c0, slope, noise, min_snr,
-                             None if bsub is None else np.ascontiguousarray(bsub), rho,
+    res = _centres_by_column(sub, msub, c0, slope, noise, min_snr, bsub, rho,
                              want_samples=want_samples or rho is None)
     if res is None:
         return _empty(return_info)
@@ -320,7 +387,7 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
                        noise: float, min_snr: float, blk: np.ndarray | None = None,
                        rho: float | None = None, want_samples: bool = True):
     """Column-wise centres; returns (points (N, 2), snr, width, rho used, samples) or None."""
-    cols = np.nonzero(mask.any(axis=0))[0]
+    cols = _derived(mask, "cols", lambda: np.flatnonzero(mask.any(axis=0)))
     if cols.size < 5:
         return None
     H = img.shape[0]
@@ -339,19 +406,30 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
     samples = None
     rho_used = rho
     # with blackness: pass 0 plain, then passes with the albedo divided out; rho (when not
-    # given) is re-estimated after each pass, as the centres it weights by move
+    # given) is re-estimated after each pass, as the centres it weights by move. A column
+    # whose window did not move since the last pass with the same albedo division gives the
+    # same centre again: only the columns whose window moved are recomputed.
     n_pass = 2 if blk is None else 4
     idx = np.arange(2 * L + 1)[None, :]
+    sig_smooth = max(width / 2.355, 0.8)
+    st = None  # per column: prof, bprof, s_raw, start, peak, cen (the last pass's)
+    divided_by = None
     for it in range(n_pass):
-        prof, top = _profiles(img, cols, y_cur, L)
-        bprof = None if blk is None else np.clip(_profiles(blk, cols, y_cur, L)[0], 0.0, 1.0)
-        s = prof - _background(prof, bprof)
-        start = np.argmax(_smooth_rows(s, max(width / 2.355, 0.8)), axis=1)
-        peak = s[np.arange(len(s)), start]
-        s_raw = s
-        if bprof is not None and rho_used is not None and it > 0:
-            s = s / (1.0 - (1.0 - rho_used) * bprof)
-        cen, _ = _window_centroid(s, start.astype(float), half)
+        divide = rho_used if blk is not None and rho_used is not None and it > 0 else None
+        if st is None or divide != divided_by:
+            top = _profile_top(y_cur, L, H)
+            st = list(_column_pass(img, blk, cols, top, L, sig_smooth, divide, half))
+        else:
+            new_top = _profile_top(y_cur, L, H)
+            moved = np.flatnonzero(new_top != top)
+            top = new_top
+            if moved.size:
+                for arr, part in zip(st, _column_pass(img, blk, cols[moved], top[moved], L,
+                                                      sig_smooth, divide, half)):
+                    if arr is not None:
+                        arr[moved] = part
+        divided_by = divide
+        prof, bprof, s_raw, start, peak, cen = st
         ok = np.isfinite(cen) & (peak >= min_snr * noise)
         y_cur = np.where(ok, top + cen, y_cur)
         if bprof is not None and it < n_pass - 1 and want_samples:
@@ -376,6 +454,28 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
     if xi.size < 5:
         return None
     return np.column_stack([xi.astype(float), yi]), snr, width, rho_used, samples
+
+
+def _profile_top(y: np.ndarray, L: int, H: int) -> np.ndarray:
+    """First row of the profile windows ``round(y) - L`` (:func:`_profiles`), in the image."""
+    return np.clip(np.round(y).astype(np.intp) - L, 0, max(H - 2 * L - 1, 0))
+
+
+def _column_pass(img: np.ndarray, blk: np.ndarray | None, cols: np.ndarray, top: np.ndarray,
+                 L: int, sig_smooth: float, divide: float | None, half: float):
+    """One pass of :func:`_centres_by_column` over the columns ``cols`` with windows from
+    row ``top``: profiles, blackness profiles (or None), background-free profiles, start
+    of the centroid, peak, centre (in window rows; the albedo ``1 - (1 - divide) b`` divided
+    out when ``divide`` is given)."""
+    y_mid = top + L  # rounds to itself: the windows start at ``top``
+    prof, _ = _profiles(img, cols, y_mid, L)
+    bprof = None if blk is None else np.clip(_profiles(blk, cols, y_mid, L)[0], 0.0, 1.0)
+    s = prof - _background(prof, bprof)
+    start = np.argmax(_smooth_rows(s, sig_smooth), axis=1)
+    peak = s[np.arange(len(s)), start]
+    s_div = s if divide is None else s / (1.0 - (1.0 - divide) * bprof)
+    cen, _ = _window_centroid(s_div, start.astype(float), half)
+    return prof, bprof, s, start, peak, cen
 
 
 def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.ndarray:
@@ -466,8 +566,7 @@ def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
 
 def _fwhm(prof: np.ndarray, noise: float) -> float:
     """Median full width at half maximum (px) of the profiles with a clear peak."""
-    base = np.median(prof, axis=1, keepdims=True)
-    s = prof - base
+    s = prof - _row_median(prof)[:, None]
     pk = s.max(axis=1)
     good = pk > 8 * noise
     if good.sum() < 3:
