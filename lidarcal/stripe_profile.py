@@ -152,17 +152,24 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         base = np.median(vals[::7])
         peak = np.percentile(vals, 99.9)
     thr = base + max(0.35 * (peak - base), 6.0 * noise)
-    ys, xs = np.nonzero(mask & (sm > thr))
-    if xs.size < 10:
-        return None
+    if sm.dtype == np.uint8:  # integers: v > thr is v > floor(thr), as cv2.threshold tests
+        hot = cv2.threshold(sm, thr, 1, cv2.THRESH_BINARY)[1]
+        hot &= np.ascontiguousarray(mask).view(np.uint8)
+        found = cv2.findNonZero(hot)  # (x, y) in row-major order, as np.nonzero
+        if found is None or len(found) < 10:
+            return None
+        P = found.reshape(-1, 2).astype(float)
+    else:
+        ys, xs = np.nonzero(mask & (sm > thr))
+        if xs.size < 10:
+            return None
+        P = np.column_stack([xs, ys]).astype(float)
     if scale != 1.0:
-        xs, ys = scale * xs + 0.5 * (scale - 1), scale * ys + 0.5 * (scale - 1)
-    P = np.column_stack([xs, ys]).astype(float)
+        P = scale * P + 0.5 * (scale - 1)
     keep = np.ones(len(P), bool)
     for _ in range(3):
         c = P[keep].mean(0)
-        _, _, vt = np.linalg.svd(P[keep] - c, full_matrices=False)
-        t = vt[0]
+        t = _principal_direction(P[keep] - c)
         nrm = np.array([-t[1], t[0]])
         r = (P - c) @ nrm
         s = MAD_TO_SIGMA * np.median(np.abs(r[keep]))
@@ -170,6 +177,14 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         if keep.sum() < 10:
             return None
     return c, t
+
+
+def _principal_direction(q: np.ndarray) -> np.ndarray:
+    """Unit direction of largest spread of centred 2D points (N, 2): the first principal
+    axis (the leading right singular vector), in closed form from the 2 x 2 scatter."""
+    sxx, syy, sxy = q[:, 0] @ q[:, 0], q[:, 1] @ q[:, 1], q[:, 0] @ q[:, 1]
+    a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    return np.array([np.cos(a), np.sin(a)])
 
 
 def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: int = 6,
@@ -186,20 +201,23 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
     """
     n_rows, n = prof.shape
     s = np.clip(prof, 0, None).astype(np.float64)
-    # running sums along each profile from integral images (rows r + 1 minus rows r)
+    # running sums along each profile from integral images (row r + 1 minus row r)
     cs = cv2.integral(s, sdepth=cv2.CV_64F)
     cj = cv2.integral(s * np.arange(n), sdepth=cv2.CV_64F)
+    cs, cj = (cs[1:] - cs[:-1]).ravel(), (cj[1:] - cj[:-1]).ravel()  # (n_rows, n + 1)
+    sf = np.concatenate([s, np.zeros((n_rows, 1))], axis=1).ravel()
     c = start.astype(float).copy()
     mass = np.zeros(n_rows)
     act = np.arange(n_rows)  # rows still moving; converged rows are left alone
 
     def running(x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # integrals of s and of j s over cells from -1/2 up to x (clipped to the profile)
-        x = np.clip(x, -0.5, n - 0.5)
-        k = np.minimum(np.floor(x + 0.5).astype(np.intp), n)
-        frac = x + 0.5 - k
-        sk = s[r, np.minimum(k, n - 1)] * frac
-        return (cs[r + 1, k] - cs[r, k] + sk), (cj[r + 1, k] - cj[r, k] + k * sk)
+        x = np.clip(x + 0.5, 0.0, n)
+        k = x.astype(np.intp)  # floor (x >= 0)
+        frac = x - k
+        i = r * (n + 1) + k
+        sk = sf[i] * frac
+        return cs[i] + sk, cj[i] + k * sk
 
     for _ in range(iters):
         ca = c[act]
@@ -259,8 +277,9 @@ def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | No
 
     With ``return_info`` a dict comes back as a second value: ``snr``,
     ``width_px``, ``noise_dn``, ``rho`` (used), ``fit_rms_px``,
-    ``n_rejected`` and ``samples`` (x, signal mass, effective blackness per
-    column, for a joint :func:`reflectance_ratio`).
+    ``n_rejected``, ``samples`` (x, signal mass, effective blackness per
+    column, for a joint :func:`reflectance_ratio`) and ``normalised`` (the centres
+    undistorted to normalised coordinates, (N, 2), when ``camera`` is given).
     """
     img = np.asarray(image)
     if img.ndim == 3:
@@ -335,14 +354,15 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
     if transpose:
         pts = pts[:, ::-1]
     pts = pts + np.array([x_lo, y_lo], float)
-    keep, fit_rms = _reject_outliers(pts, camera)
+    keep, fit_rms, xy = _reject_outliers(pts, camera)
     if not return_info:
         return pts[keep]
     quality = stripe_quality(pts[keep], int((~keep).sum()), fit_rms, width, snr[keep],
                              mask_img, (x_lo, y_lo))
     info = {"snr": snr[keep], "width_px": width, "noise_dn": noise, "rho": rho_used,
             "fit_rms_px": fit_rms, "n_rejected": int((~keep).sum()), "samples": samples,
-            "quality": quality, "problem": quality_problem(quality)}
+            "quality": quality, "problem": quality_problem(quality),
+            "normalised": None if xy is None else xy[keep]}
     return pts[keep], info
 
 
@@ -363,23 +383,27 @@ def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
     blackness differs between the two thirds, ``b0 + b1 * blackness``
     (ambient light is reflected in proportion to the squares' albedo).
     """
-    n = prof.shape[1]
+    m, n = prof.shape
     third = max(n // 3, 2)
-    left = _row_median(prof[:, :third])
-    right = _row_median(prof[:, -third:])
+    parts = [prof[:, :third], prof[:, -third:]]
+    if bprof is not None and bprof.dtype == prof.dtype:
+        parts += [bprof[:, :third], bprof[:, -third:]]
+    med = _row_median(np.concatenate(parts))  # all the thirds' medians at once
+    left, right = med[:m], med[m:2 * m]
     xl, xr = (third - 1) / 2.0, n - 1 - (third - 1) / 2.0
-    k = np.arange(n)[None, :]
-    bg = left[:, None] + (right - left)[:, None] * (k - xl) / (xr - xl)
+    u = (np.arange(n)[None, :] - xl) / (xr - xl)
+    bg = left[:, None] + (right - left)[:, None] * u
     if bprof is None:
         return bg
-    bl = _row_median(bprof[:, :third])
-    br = _row_median(bprof[:, -third:])
+    if len(med) > 2 * m:
+        bl, br = med[2 * m:3 * m], med[3 * m:]
+    else:
+        bl, br = _row_median(bprof[:, :third]), _row_median(bprof[:, -third:])
     db = br - bl
-    step = np.abs(db) > 0.3
-    if np.any(step):
-        slope = np.where(step, (right - left) / np.where(step, db, 1.0), 0.0)
-        bg_b = left[:, None] + slope[:, None] * (bprof - bl[:, None])
-        bg = np.where(step[:, None], bg_b, bg)
+    step = np.flatnonzero(np.abs(db) > 0.3)
+    if step.size:
+        slope = (right[step] - left[step]) / db[step]
+        bg[step] = left[step, None] + slope[:, None] * (bprof[step] - bl[step, None])
     return bg
 
 
@@ -577,12 +601,14 @@ def _fwhm(prof: np.ndarray, noise: float) -> float:
 
 
 def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
-                     k: float = 3.5, iters: int = 5) -> tuple[np.ndarray, float]:
-    """Inlier mask of stripe centres against a smooth curve, and the inliers' rms (px)."""
+                     k: float = 3.5, iters: int = 5) -> tuple[np.ndarray, float, np.ndarray | None]:
+    """Inlier mask of stripe centres against a smooth curve, the inliers' rms (px), and the
+    centres' undistorted normalised coordinates (N, 2) when ``camera`` is given (else None).
+    """
     n = len(pts)
     keep = np.ones(n, bool)
     if n < 5:
-        return keep, float("nan")
+        return keep, float("nan"), None
     if camera is not None:
         xy = undistort_pixels(camera, pts)
         f = float(np.mean(np.diag(camera.K)[:2]))
@@ -595,19 +621,20 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
             break
         if camera is not None:
             c = xy[keep].mean(0)
-            _, _, vt = np.linalg.svd(xy[keep] - c, full_matrices=False)
-            r = ((xy - c) @ vt[1]) * f
+            t = _principal_direction(xy[keep] - c)
+            r = ((xy - c) @ np.array([-t[1], t[0]])) * f
         else:
             c = pts[keep].mean(0)
-            _, _, vt = np.linalg.svd(pts[keep] - c, full_matrices=False)
-            u, v = (pts - c) @ vt[0], (pts - c) @ vt[1]
+            t = _principal_direction(pts[keep] - c)
+            u, v = (pts - c) @ t, (pts - c) @ np.array([-t[1], t[0]])
             A = np.column_stack([np.ones(n), u, u * u])
             coef, *_ = np.linalg.lstsq(A[keep], v[keep], rcond=None)
             r = v - A @ coef
-        sig = MAD_TO_SIGMA * np.median(np.abs(r[keep] - np.median(r[keep])))
+        rk = r[keep]
+        sig = MAD_TO_SIGMA * np.median(np.abs(rk - np.median(rk)))
         new = np.isfinite(r) & (np.abs(r) <= max(k * sig, 0.05))
         if np.array_equal(new, keep):
             break
         keep = new
     rms = float(np.sqrt(np.mean(r[keep] ** 2))) if keep.any() else float("nan")
-    return keep, rms
+    return keep, rms, (xy if camera is not None else None)
