@@ -9,6 +9,8 @@ against a smooth curve; :func:`stripe_centres` lists the steps. The board-level 
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -209,29 +211,25 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
     c = start.astype(float).copy()
     mass = np.zeros(n_rows)
     act = np.arange(n_rows)  # rows still moving; converged rows are left alone
-
-    def running(x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # integrals of s and of j s over cells from -1/2 up to x (clipped to the profile)
-        x = np.clip(x + 0.5, 0.0, n)
-        k = x.astype(np.intp)  # floor (x >= 0)
-        frac = x - k
-        i = r * (n + 1) + k
-        sk = sf[i] * frac
-        return cs[i] + sk, cj[i] + k * sk
-
-    for _ in range(iters):
-        ca = c[act]
-        m_hi, j_hi = running(ca + half, act)
-        m_lo, j_lo = running(ca - half, act)
-        m = m_hi - m_lo
-        with np.errstate(invalid="ignore", divide="ignore"):
-            c_new = (j_hi - j_lo) / m
-        c_new = np.where(m > 0, c_new, np.nan)
-        moving = np.abs(c_new - ca) > tol  # False for NaN: such rows stay NaN
-        c[act], mass[act] = c_new, m
-        act = act[moving]
-        if act.size == 0:
-            break
+    base = act * (n + 1)
+    edges = np.array([[half + 0.5], [0.5 - half]])  # window ends, + 1/2: cells from -1/2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for _ in range(iters):
+            ca = c[act]
+            # integrals of s and of j s from -1/2 up to both window ends (clipped)
+            x = np.clip(ca + edges, 0.0, n)
+            k = x.astype(np.intp)  # floor (x >= 0)
+            i = k + base[act]
+            sk = sf[i] * (x - k)
+            m2 = cs[i] + sk
+            j2 = cj[i] + k * sk
+            m = m2[0] - m2[1]
+            c_new = np.where(m > 0, (j2[0] - j2[1]) / m, np.nan)
+            moving = np.abs(c_new - ca) > tol  # False for NaN: such rows stay NaN
+            c[act], mass[act] = c_new, m
+            act = act[moving]
+            if act.size == 0:
+                break
     return c, mass
 
 
@@ -242,7 +240,9 @@ def _profiles(img: np.ndarray, xs: np.ndarray, y0: np.ndarray, L: int) -> tuple[
     n = 2 * L + 1
     top = np.clip(np.round(y0).astype(np.intp) - L, 0, max(H - n, 0))
     if H >= n:  # windows of n rows: one gather of M runs, not M x n single pixels
-        win = np.lib.stride_tricks.sliding_window_view(img, n, axis=0)
+        s0, s1 = img.strides
+        win = np.lib.stride_tricks.as_strided(img, (H - n + 1, img.shape[1], n), (s0, s1, s0),
+                                              writeable=False)
         return win[top, xs].astype(np.float32, copy=False), top
     rows = np.clip(top[:, None] + np.arange(n)[None, :], 0, H - 1)
     return img[rows, xs[:, None]].astype(np.float32, copy=False), top
@@ -366,6 +366,11 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
     return pts[keep], info
 
 
+def _median(v: np.ndarray) -> float:
+    """``np.median`` of a finite 1-D array, by partition."""
+    return float(_row_median(v[None, :])[0])
+
+
 def _row_median(a: np.ndarray) -> np.ndarray:
     """``np.median(a, axis=1)`` for finite data, by one partition."""
     n = a.shape[1]
@@ -456,7 +461,9 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
         prof, bprof, s_raw, start, peak, cen = st
         ok = np.isfinite(cen) & (peak >= min_snr * noise)
         y_cur = np.where(ok, top + cen, y_cur)
-        if bprof is not None and it < n_pass - 1 and want_samples:
+        # (with rho given, only the last of these passes' samples is returned)
+        if bprof is not None and want_samples and (it == n_pass - 2 or
+                                                   (rho is None and it < n_pass - 1)):
             # raw signal mass and effective blackness in a window about the current centre
             sig = max(width / 2.355, 0.7)
             cc = np.nan_to_num(cen)[:, None]
@@ -581,11 +588,17 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing of each profile (along axis 1)."""
+    return cv2.filter2D(s.astype(np.float32), -1, _gauss_kernel(sigma),
+                        borderType=cv2.BORDER_REPLICATE)
+
+
+@functools.lru_cache(maxsize=8)
+def _gauss_kernel(sigma: float) -> np.ndarray:
+    """The normalised Gaussian (1, 2r + 1), float32, ``r = ceil(3 sigma)``, of :func:`_smooth_rows`."""
     r = int(np.ceil(3 * sigma))
     k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
     k /= k.sum()
-    return cv2.filter2D(s.astype(np.float32), -1, k[None, :].astype(np.float32),
-                        borderType=cv2.BORDER_REPLICATE)
+    return k[None, :].astype(np.float32)
 
 
 def _fwhm(prof: np.ndarray, noise: float) -> float:
@@ -596,7 +609,7 @@ def _fwhm(prof: np.ndarray, noise: float) -> float:
     if good.sum() < 3:
         return 3.0
     above = s[good] > 0.5 * pk[good, None]
-    widths = above.sum(axis=1)
+    widths = np.count_nonzero(above, axis=1)
     return float(np.clip(np.median(widths), 1.0, 30.0))
 
 
@@ -631,7 +644,7 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
             coef, *_ = np.linalg.lstsq(A[keep], v[keep], rcond=None)
             r = v - A @ coef
         rk = r[keep]
-        sig = MAD_TO_SIGMA * np.median(np.abs(rk - np.median(rk)))
+        sig = MAD_TO_SIGMA * _median(np.abs(rk - _median(rk)))
         new = np.isfinite(r) & (np.abs(r) <= max(k * sig, 0.05))
         if np.array_equal(new, keep):
             break
