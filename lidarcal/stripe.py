@@ -172,12 +172,14 @@ def _board_inputs(img: np.ndarray, boards: tuple[BoardView, BoardView], albedo: 
 
 
 def _crop_centres(crop, camera: CameraModel, min_snr: float, rho: float | None,
-                  return_info: bool = False, want_samples: bool | None = None):
+                  return_info: bool = False, want_samples: bool | None = None,
+                  samples_only: bool = False):
     if crop is None:
         return _empty(return_info)
     sub, msub, bsub, origin = crop
     return _centres_in_crop(sub, msub, bsub, origin, camera, min_snr, rho, return_info,
-                            return_info if want_samples is None else want_samples, clean=True)
+                            return_info if want_samples is None else want_samples, clean=True,
+                            samples_only=samples_only)
 
 
 def estimate_reflectance_ratio(camera: CameraModel, stripe_images: list[np.ndarray],
@@ -218,7 +220,7 @@ def _crops_samples(crops, camera: CameraModel, min_snr: float) -> list:
     with ``rho = 1``: no albedo division)."""
     out = []
     for crop in crops:
-        _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True)
+        _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True, samples_only=True)
         if info.get("samples") is not None:
             out.append(info["samples"])
     return out

@@ -144,10 +144,18 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
                  ) -> tuple[np.ndarray, np.ndarray] | None:
     """PCA line of the pixels of a smoothed image ``sm`` well above its background, in
     full-resolution pixels (``sm`` is the image reduced by ``scale``)."""
-    vals = sm[mask]
-    if vals.size < 20:
+    if sm.dtype == np.uint8 and sm.flags.c_contiguous:
+        # the masked pixels' histogram, and every 7th of them (flat indices kept per mask)
+        m8 = np.ascontiguousarray(mask).view(np.uint8)
+        hist = cv2.calcHist([sm], [0], m8, [256], [0, 256]).ravel().astype(np.int64)
+        if hist.sum() < 20:
+            return None
+        every7 = _derived(mask, "every7", lambda: np.flatnonzero(mask)[::7])
+        base = _int_percentile(sm.ravel()[every7], 50.0)
+        peak = _hist_percentile(hist, 99.9)
+    elif (vals := sm[mask]).size < 20:
         return None
-    if sm.dtype == np.uint8:
+    elif sm.dtype == np.uint8:
         base = _int_percentile(vals[::7], 50.0)
         peak = _int_percentile(vals, 99.9)
     else:
@@ -174,9 +182,9 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         t = _principal_direction(P[keep] - c)
         nrm = np.array([-t[1], t[0]])
         r = (P - c) @ nrm
-        s = MAD_TO_SIGMA * np.median(np.abs(r[keep]))
+        s = MAD_TO_SIGMA * _median(np.abs(r[keep]))
         keep = np.abs(r) <= max(3 * s, 2.0)
-        if keep.sum() < 10:
+        if np.count_nonzero(keep) < 10:
             return None
     return c, t
 
@@ -318,10 +326,12 @@ def _crop_box(mask: np.ndarray, shape: tuple[int, ...]) -> tuple[int, int, int, 
 def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
                      origin: tuple[int, int], camera: CameraModel | None, min_snr: float,
                      rho: float | None, return_info: bool, want_samples: bool,
-                     clean: bool = False):
+                     clean: bool = False, samples_only: bool = False):
     """:func:`stripe_centres` on a crop (origin ``(x0, y0)`` in the image) holding the mask.
 
-    ``clean``: ``bsub`` is already finite float32 (from :func:`_board_crop`)."""
+    ``clean``: ``bsub`` is already finite float32 (from :func:`_board_crop`).
+    ``samples_only``: the caller wants ``info["samples"]`` alone (the reflectance ratio):
+    the centres' outlier test and quality gates are skipped."""
     x_lo, y_lo = origin
     sub = np.asarray(sub)
     raw8 = sub if sub.dtype == np.uint8 else None
@@ -351,6 +361,8 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
     if res is None:
         return _empty(return_info)
     pts, snr, width, rho_used, samples = res
+    if samples_only:
+        return pts, {"samples": samples, "rho": rho_used}
     if transpose:
         pts = pts[:, ::-1]
     pts = pts + np.array([x_lo, y_lo], float)
