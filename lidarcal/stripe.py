@@ -93,8 +93,8 @@ def laser_plane_from_lines(points: tuple[np.ndarray, np.ndarray],
     for P, pl in zip(points, planes):
         Q = pl.project(P)
         c = Q.mean(0)
-        _, _, vt = np.linalg.svd(Q - c, full_matrices=False)
-        d = vt[0]
+        _, V = np.linalg.eigh((Q - c).T @ (Q - c))  # the scatter's principal axis
+        d = V[:, -1]
         t = (Q - c) @ d
         ts = np.linspace(t.min(), t.max(), 9)
         samples.append(c + ts[:, None] * d)
