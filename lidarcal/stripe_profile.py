@@ -585,13 +585,16 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
         pinv = np.linalg.pinv(A)
         # all grid values at once: column g of Y is the model's left side for rho = grid[g]
         Y = lm[:, None] - np.log(1.0 - (1.0 - grid)[None, :] * b[:, None])
-        res = Y - A @ (pinv @ Y)
+        res = Y - _times(A, _times(pinv, Y))
         # one reweighting step towards an L1 fit (weighted normal equations, 3 x 3 per column)
         w = 1.0 / np.maximum(np.abs(res), 1e-3)
-        M = np.einsum("ni,nj,ng->gij", A, A, w)
-        rhs = np.einsum("ni,ng->gi", A, w * Y)
+        M = np.empty((len(grid), 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                M[:, i, j] = M[:, j, i] = _times((A[:, i] * A[:, j])[None, :], w)[0]
+        rhs = _times(A.T, w * Y).T
         coef = np.linalg.solve(M, rhs[:, :, None])[:, :, 0]
-        cost += np.abs(Y - A @ coef.T).sum(0)
+        cost += np.abs(Y - _times(A, coef.T)).sum(0)
     i = int(np.argmin(cost))
     if 0 < i < len(grid) - 1:  # parabolic refinement
         c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
@@ -599,6 +602,15 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
         step = 0.5 * (c0 - c2) / den if den > 0 else 0.0
         return float(grid[i] + np.clip(step, -1, 1) * (grid[1] - grid[0]))
     return float(grid[i])
+
+
+def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for a short inner or outer dimension (``a`` (p, n), ``b`` (n, q), p or n
+    at most a few), as broadcast sums: no multi-threaded BLAS call, whose spinning threads
+    cost more CPU than these small products."""
+    if a.shape[1] <= a.shape[0]:  # short inner dimension: a sum of outer products
+        return sum(a[:, k, None] * b[k][None, :] for k in range(a.shape[1]))
+    return np.stack([(a[k][:, None] * b).sum(0) for k in range(a.shape[0])])
 
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
