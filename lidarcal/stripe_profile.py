@@ -473,7 +473,7 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
                     if arr is not None:
                         arr[moved] = part
         divided_by = divide
-        prof, bprof, s_raw, start, peak, cen = st
+        prof, bprof, s_raw, _, peak, cen = st
         ok = np.isfinite(cen) & (peak >= min_snr * noise)
         y_cur = np.where(ok, top + cen, y_cur)
         # (with rho given, only the last of these passes' samples is returned)
