@@ -178,14 +178,18 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         P = scale * P + 0.5 * (scale - 1)
     keep = np.ones(len(P), bool)
     for _ in range(3):
-        c = P[keep].mean(0)
-        t = _principal_direction(P[keep] - c)
+        q = P[keep]
+        c = q.mean(0)
+        t = _principal_direction(q - c)
         nrm = np.array([-t[1], t[0]])
         r = (P - c) @ nrm
         s = MAD_TO_SIGMA * _median(np.abs(r[keep]))
-        keep = np.abs(r) <= max(3 * s, 2.0)
-        if np.count_nonzero(keep) < 10:
+        new = np.abs(r) <= max(3 * s, 2.0)
+        if np.count_nonzero(new) < 10:
             return None
+        if np.array_equal(new, keep):
+            break  # the next round would fit the same points again
+        keep = new
     return c, t
 
 
