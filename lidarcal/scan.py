@@ -33,6 +33,7 @@ import numpy as np
 from .scan_segments import (  # noqa: F401  (re-exported: the segmentation lives there)
     Line2D,
     LineSegment,
+    _median,
     effective_range_noise,
     estimate_range_noise,
     estimate_range_quantum,
@@ -71,6 +72,20 @@ def _unit2(v: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------
 # V segmentation
+
+def _segment_ends(seg: LineSegment, pts: np.ndarray):
+    """A segment's line (normal, offset), the feet of its first and last points on it, and
+    the distance between those two points (floats, for :func:`split_v`'s pair test)."""
+    nx, ny = (float(v) for v in seg.line.normal)
+    c = float(seg.line.offset)
+    feet = []
+    for b in (seg.beams[0], seg.beams[-1]):
+        x, y = float(pts[b, 0]), float(pts[b, 1])
+        r = x * nx + y * ny - c
+        feet.append((x - r * nx, y - r * ny))
+    p0, p1 = pts[seg.beams[0]], pts[seg.beams[-1]]
+    return (nx, ny), c, feet[0], feet[1], float(np.hypot(*(p1 - p0)))
+
 
 @dataclass(frozen=True)
 class VSegments:
@@ -183,29 +198,40 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
                        if alpha is not None else (90.0, 170.0))
     lo, hi = np.radians(opening_deg)
     candidates = []
-    pairs = [(segments[i], segments[j], segments[i + 1:j])
-             for i in range(len(segments)) for j in range(i + 1, min(i + 4, len(segments)))]
-    for s1, s2, between in pairs:
-        try:
-            E = intersect_lines_2d(s1.line, s2.line)
-            l1 = _unit2(s1.line.foot(pts[s1.beams[0]]) - E)
-            l2 = _unit2(s2.line.foot(pts[s2.beams[-1]]) - E)
-        except ValueError:
-            continue
-        opening = float(np.arctan2(abs(_cross2(l1, l2)), l1 @ l2))
-        concave = _cross2(l1, l2) < 0
-        # the vertex must sit at the inner ends: not beyond them into either segment
-        len1 = np.linalg.norm(pts[s1.beams[-1]] - pts[s1.beams[0]])
-        len2 = np.linalg.norm(pts[s2.beams[-1]] - pts[s2.beams[0]])
-        gap1 = (s1.line.foot(pts[s1.beams[-1]]) - E) @ l1  # inner end of 1, along l1
-        gap2 = (s2.line.foot(pts[s2.beams[0]]) - E) @ l2
-        near = (-0.1 * len1 <= gap1 <= 0.25 * len1) and (-0.1 * len2 <= gap2 <= 0.25 * len2)
-        # segments between the two in beam order must be seen through a gap at the hinge
-        behind = all(np.median(rho[b.beams]) > np.hypot(*E) for b in between)
-        ok = concave and near and behind and lo <= opening <= hi
-        if ok and alpha is not None:
-            ok = abs(opening - alpha) <= np.radians(alpha_tol_deg)
-        if ok:
+    ends = [_segment_ends(sg, pts) for sg in segments]
+    med_rho: dict[int, float] = {}  # a segment's median range, when asked (``behind``)
+    for i in range(len(segments)):
+        for j in range(i + 1, min(i + 4, len(segments))):
+            s1, s2 = segments[i], segments[j]
+            (n1, c1, f1, g1, len1), (n2, c2, h2, f2, len2) = ends[i], ends[j]
+            # f1: foot of segment 1's first point, g1: of its last (inner end); h2: foot of
+            # segment 2's first point (inner end), f2: of its last
+            det = n1[0] * n2[1] - n1[1] * n2[0]
+            if abs(det) < 1e-9:
+                continue  # parallel: no vertex
+            E = ((c1 * n2[1] - n1[1] * c2) / det, (n1[0] * c2 - c1 * n2[0]) / det)
+            d1 = (f1[0] - E[0], f1[1] - E[1])
+            d2 = (f2[0] - E[0], f2[1] - E[1])
+            m1, m2 = np.hypot(*d1), np.hypot(*d2)
+            if m1 == 0 or m2 == 0:
+                continue  # degenerate V: a segment end coincides with the vertex
+            l1, l2 = (d1[0] / m1, d1[1] / m1), (d2[0] / m2, d2[1] / m2)
+            cross = l1[0] * l2[1] - l1[1] * l2[0]
+            opening = float(np.arctan2(abs(cross), l1[0] * l2[0] + l1[1] * l2[1]))
+            if not (cross < 0 and lo <= opening <= hi):  # concave, opening in range
+                continue
+            # the vertex must sit at the inner ends: not beyond them into either segment
+            gap1 = (g1[0] - E[0]) * l1[0] + (g1[1] - E[1]) * l1[1]  # inner end of 1, along l1
+            gap2 = (h2[0] - E[0]) * l2[0] + (h2[1] - E[1]) * l2[1]
+            if not ((-0.1 * len1 <= gap1 <= 0.25 * len1) and (-0.1 * len2 <= gap2 <= 0.25 * len2)):
+                continue
+            if alpha is not None and abs(opening - alpha) > np.radians(alpha_tol_deg):
+                continue
+            # segments between the two in beam order must be seen through a gap at the hinge
+            rE = np.hypot(*E)
+            if not all(med_rho.setdefault(b, _median(rho[segments[b].beams])) > rE
+                       for b in range(i + 1, j)):
+                continue
             candidates.append((len(s1.beams) + len(s2.beams), s1, s2, opening))
     if not candidates:
         raise ValueError(f"found {len(segments)} line segments but no pair forms the V "

@@ -76,7 +76,7 @@ def estimate_range_noise(range_mm: np.ndarray) -> float:
     if len(d2) < 5:
         raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
                          "range noise; pass range_noise_mm")
-    return float(MAD_TO_SIGMA * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+    return float(MAD_TO_SIGMA * _median(np.abs(d2 - _median(d2))) / np.sqrt(6.0))
 
 
 def estimate_range_quantum(range_mm: np.ndarray) -> float:
@@ -137,14 +137,31 @@ class Line2D:
 
 
 def fit_line_2d(points: np.ndarray) -> Line2D:
-    """Total-least-squares line through 2D points (minimises orthogonal distances)."""
+    """Total-least-squares line through 2D points (minimises orthogonal distances).
+
+    The normal is the eigenvector of the smallest eigenvalue of the centred points'
+    2 x 2 scatter matrix (the last right singular vector), in closed form: the line's
+    direction is at ``0.5 atan2(2 s_xy, s_xx - s_yy)``.
+    """
     p = np.asarray(points, dtype=float)
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
         raise ValueError(f"A line needs points with shape (N >= 2, 2), got {p.shape}")
-    c = p.mean(0)
-    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
-    n = vt[-1]
+    c = p.sum(0) / len(p)
+    q = p - c
+    x, y = q[:, 0], q[:, 1]
+    a = 0.5 * np.arctan2(2.0 * float(x @ y), float(x @ x) - float(y @ y))
+    n = np.array([-np.sin(a), np.cos(a)])
     return Line2D(n, float(n @ c))
+
+
+def _median(v: np.ndarray) -> float:
+    """``np.median`` of a finite 1-D array, by partition (no NaN handling)."""
+    n = len(v)
+    k = n // 2
+    if n % 2:
+        return float(np.partition(v, k)[k])
+    lo, hi = np.partition(v, [k - 1, k])[k - 1:k + 1]
+    return float((lo + hi) / 2)
 
 
 
@@ -162,17 +179,18 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
         # smallest eigenvalue of [[a, b], [b, c]]
         return np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
 
-    cs = [np.concatenate([[0.0], np.cumsum(v)]) for v in
-          (q[:, 0], q[:, 1], q[:, 0] ** 2, q[:, 0] * q[:, 1], q[:, 1] ** 2)]
+    x, y = q[:, 0], q[:, 1]
+    cs = np.zeros((n + 1, 5))
+    np.cumsum(np.column_stack([x, y, x * x, x * y, y * y]), axis=0, out=cs[1:])
     k = np.arange(lo, hi)
-    left = sse(k.astype(float), *(c[k] for c in cs))
-    right = sse((n - k).astype(float), *(c[-1] - c[k] for c in cs))
+    left = sse(k.astype(float), *cs[k].T)
+    right = sse((n - k).astype(float), *(cs[-1] - cs[k]).T)
     return left + right
 
 
 def _mad_scale(r: np.ndarray) -> float:
     """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
-    return float(MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
+    return float(MAD_TO_SIGMA * _median(np.abs(r - _median(r))))
 
 
 def _two_line_scale(p: np.ndarray, k: int) -> float:
@@ -255,7 +273,7 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         r = line.distance(p)
         # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
         # re-estimating it from already-trimmed inliers
-        scale = max(MAD_TO_SIGMA * np.median(np.abs(r)), 0.25 * sigma)
+        scale = max(MAD_TO_SIGMA * _median(np.abs(r)), 0.25 * sigma)
         new = np.abs(r) <= k * scale
         if new.sum() < 2:
             break
@@ -287,11 +305,11 @@ def _level_runs(p: np.ndarray, line: Line2D, mask: np.ndarray, sigma: float) -> 
     if len(bad) < _LEVEL_RUN:
         return out
     r = line.distance(p)
-    spacing = float(np.median(np.hypot(*np.diff(p, axis=0).T)))
+    spacing = _median(np.hypot(*np.diff(p, axis=0).T))
     tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * spacing
     for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
         rr = r[run]
-        if (len(run) >= _LEVEL_RUN and abs(np.median(rr)) <= tau
+        if (len(run) >= _LEVEL_RUN and abs(_median(rr)) <= tau
                 and _mad_scale(rr) <= 3 * sigma):
             out[run] = True
     return out
@@ -371,8 +389,8 @@ def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
     if len(valid_idx) < min_points:
         return [], float(range_noise_mm or 0.0)
     sigma = float(range_noise_mm) if range_noise_mm is not None else effective_range_noise(rho)
-    sigma = max(sigma, 1e-6 * float(np.median(rho[valid_idx])))
-    dtheta = float(np.median(np.diff(np.radians(ang))))
+    sigma = max(sigma, 1e-6 * _median(rho[valid_idx]))
+    dtheta = _median(np.diff(np.radians(ang)))
     rng = np.random.default_rng(0)
 
     labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)

@@ -93,8 +93,8 @@ def laser_plane_from_lines(points: tuple[np.ndarray, np.ndarray],
     for P, pl in zip(points, planes):
         Q = pl.project(P)
         c = Q.mean(0)
-        _, _, vt = np.linalg.svd(Q - c, full_matrices=False)
-        d = vt[0]
+        _, V = np.linalg.eigh((Q - c).T @ (Q - c))  # the scatter's principal axis
+        d = V[:, -1]
         t = (Q - c) @ d
         ts = np.linspace(t.min(), t.max(), 9)
         samples.append(c + ts[:, None] * d)
@@ -172,12 +172,14 @@ def _board_inputs(img: np.ndarray, boards: tuple[BoardView, BoardView], albedo: 
 
 
 def _crop_centres(crop, camera: CameraModel, min_snr: float, rho: float | None,
-                  return_info: bool = False, want_samples: bool | None = None):
+                  return_info: bool = False, want_samples: bool | None = None,
+                  samples_only: bool = False):
     if crop is None:
         return _empty(return_info)
     sub, msub, bsub, origin = crop
     return _centres_in_crop(sub, msub, bsub, origin, camera, min_snr, rho, return_info,
-                            return_info if want_samples is None else want_samples, clean=True)
+                            return_info if want_samples is None else want_samples, clean=True,
+                            samples_only=samples_only)
 
 
 def estimate_reflectance_ratio(camera: CameraModel, stripe_images: list[np.ndarray],
@@ -218,7 +220,7 @@ def _crops_samples(crops, camera: CameraModel, min_snr: float) -> list:
     with ``rho = 1``: no albedo division)."""
     out = []
     for crop in crops:
-        _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True)
+        _, info = _crop_centres(crop, camera, min_snr, 1.0, return_info=True, samples_only=True)
         if info.get("samples") is not None:
             out.append(info["samples"])
     return out
@@ -245,6 +247,24 @@ def board_stripe_centres(camera: CameraModel, stripe_image: np.ndarray,
     :func:`estimate_reflectance_ratio`). A colour image is turned into the laser's response
     by ``laser_colour`` (:func:`laser_response`).
     """
+    centres, rho, infos = _board_stripe_centres(camera, stripe_image, boards, min_snr, rho,
+                                                albedo_correction, laser_colour)
+    return centres, rho, [_problem(c, info) for c, info in zip(centres, infos)]
+
+
+def _problem(centres: np.ndarray, info: dict) -> str | None:
+    """One board's stripe problem for :func:`board_stripe_centres` (None: usable)."""
+    return info.get("problem") or (
+        None if len(centres) >= MIN_STRIPE_CENTRES
+        else f"{len(centres)} stripe centres found, need at least {MIN_STRIPE_CENTRES}")
+
+
+def _board_stripe_centres(camera: CameraModel, stripe_image: np.ndarray,
+                          boards: tuple[BoardView, BoardView], min_snr: float, rho: float | None,
+                          albedo_correction: bool, laser_colour: str
+                          ) -> tuple[list[np.ndarray], float | None, list[dict]]:
+    """:func:`board_stripe_centres` with each board's ``info`` of :func:`stripe_centres`
+    instead of its problem."""
     img = np.asarray(stripe_image)
     if img.ndim == 3:
         img = laser_response(img, laser_colour)
@@ -257,15 +277,13 @@ def board_stripe_centres(camera: CameraModel, stripe_image: np.ndarray,
         rho = reflectance_ratio(_crops_samples(crops, camera, min_snr))
         if rho is None:
             rho = 1.0  # not seen in this image: no division (background still uses blackness)
-    centres, problems = [], []
+    centres, infos = [], []
     for k in range(2):
         c, info = _crop_centres(crops[k], camera, min_snr, rho, return_info=True,
                                 want_samples=False)
         centres.append(c)
-        problems.append(info.get("problem") or (
-            None if len(c) >= MIN_STRIPE_CENTRES
-            else f"{len(c)} stripe centres found, need at least {MIN_STRIPE_CENTRES}"))
-    return centres, rho, problems
+        infos.append(info)
+    return centres, rho, infos
 
 
 def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
@@ -289,25 +307,34 @@ def camera_lines(camera: CameraModel, stripe_image: np.ndarray,
         caller names the file. Never wrong points instead.
     """
     planes = tuple(b.plane_pnp if use_pnp else b.plane for b in boards)
-    centres, rho, problems = board_stripe_centres(camera, stripe_image, boards, min_snr, rho,
-                                                  albedo_correction, laser_colour)
-    for k, problem in enumerate(problems):
+    centres, rho, infos = _board_stripe_centres(camera, stripe_image, boards, min_snr, rho,
+                                                albedo_correction, laser_colour)
+    for k, (c, info) in enumerate(zip(centres, infos)):
+        problem = _problem(c, info)
         if problem:
             raise ValueError(f"board {k}: {problem}; is the stripe on both boards, bright "
                              "enough, and lidar.laser_colour right?")
-    return camera_lines_from_centres(camera, centres, planes, rho)
+    return camera_lines_from_centres(camera, centres, planes, rho,
+                                     normalised=[info.get("normalised") for info in infos])
 
 
 def camera_lines_from_centres(camera: CameraModel, centres: Sequence[np.ndarray],
-                              planes: Sequence[Plane], rho: float | None = None) -> CameraLines:
+                              planes: Sequence[Plane], rho: float | None = None,
+                              normalised: Sequence[np.ndarray | None] | None = None
+                              ) -> CameraLines:
     """Section 1.3 after centre extraction: eq. (4), E, l1, l2, alpha.
 
     Rays through each board's stripe centres meet that board's plane (eq. 5);
     the laser plane is the TLS fit of both boards' points (the paper's algebraic
     ``ax + by + cz = 1`` fit is kept for comparison); ``E = Pi_1 ^ Pi_2 ^ Pi_L``;
-    ``l_k = n_k x n_L`` oriented from E towards stripe ``k``.
+    ``l_k = n_k x n_L`` oriented from E towards stripe ``k``. ``normalised``: the
+    centres already undistorted (``info["normalised"]`` of :func:`stripe_centres`), per
+    board or None, so the rays need not be computed again.
     """
-    pts = [stripe_points_3d(camera, c, pl) for c, pl in zip(centres, planes)]
+    xy = [None, None] if normalised is None else list(normalised)
+    pts = [stripe_points_3d(camera, c, pl) if n is None or len(n) != len(c)
+           else pl.intersect_rays(np.column_stack([n, np.ones(len(n))]))
+           for c, pl, n in zip(centres, planes, xy)]
     allp = np.vstack(pts)
     laser = fit_plane(allp)
     E = intersect_planes(planes[0], planes[1], laser)

@@ -1,0 +1,149 @@
+"""The stripe centre's numerical kernels (section 1.3) against their definitions: the window
+centroid, the saturated-core centres, the incremental column passes and the closed-form
+TLS directions give what the plain formulas give (issue 15: they were rewritten for speed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidarcal import stripe_profile as sp
+from lidarcal.scan import fit_line_2d
+
+
+def _centroid_reference(prof: np.ndarray, start: np.ndarray, half: float, iters: int = 6,
+                        tol: float = 1e-4) -> np.ndarray:
+    """The window centroid as documented: weights = overlap of [c - half, c + half] with
+    each sample's cell, iterated per profile until it moves by at most ``tol``."""
+    out = np.empty(len(prof))
+    j = np.arange(prof.shape[1])
+    for r, row in enumerate(np.clip(prof, 0, None)):
+        c = float(start[r])
+        for _ in range(iters):
+            w = np.clip(np.minimum(c + half, j + 0.5) - np.maximum(c - half, j - 0.5), 0, 1)
+            m = (w * row).sum()
+            new = (w * row * j).sum() / m if m > 0 else np.nan
+            done = not abs(new - c) > tol
+            c = new
+            if done:
+                break
+        out[r] = c
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_window_centroid_is_the_overlap_weighted_centroid(seed) -> None:
+    rng = np.random.default_rng(seed)
+    n_rows, n = 60, 41
+    j = np.arange(n)
+    centre = rng.uniform(8, n - 9, n_rows)
+    prof = 100 * np.exp(-0.5 * ((j - centre[:, None]) / rng.uniform(1, 3)) ** 2)
+    prof += rng.normal(0, 2, prof.shape)
+    prof[:3] = 0.0  # no signal: NaN
+    start = np.clip(np.round(centre + rng.normal(0, 1.5, n_rows)), 0, n - 1)
+    half = float(rng.uniform(2, 7))
+    got, _ = sp._window_centroid(prof, start, half)
+    ref = _centroid_reference(prof, start, half)
+    assert np.array_equal(np.isnan(got), np.isnan(ref)) and np.isnan(got[:3]).all()
+    assert np.nanmax(np.abs(got - ref)) < 1e-9
+
+
+def _saturated_reference(prof, s, cen):
+    out = cen.copy()
+    n = s.shape[1]
+    for i in range(len(prof)):
+        top = prof[i].max()
+        if (prof[i] >= top - 1).sum() < 3 or top < sp.SATURATED_DN or not np.isfinite(cen[i]):
+            continue
+        row = s[i]
+        k = int(np.clip(np.rint(cen[i]), 0, n - 1))
+        half = 0.5 * row.max()
+        if row[k] < half:
+            continue
+        a = k
+        while a > 0 and row[a - 1] >= half:
+            a -= 1
+        b = k
+        while b < n - 1 and row[b + 1] >= half:
+            b += 1
+        if a == 0 or b == n - 1:
+            continue
+        left = a - (row[a] - half) / max(row[a] - row[a - 1], 1e-6)
+        right = b + (row[b] - half) / max(row[b] - row[b + 1], 1e-6)
+        out[i] = 0.5 * (left + right)
+    return out
+
+
+def test_saturated_centres_match_the_run_definition() -> None:
+    rng = np.random.default_rng(4)
+    j = np.arange(45)
+    c = rng.uniform(5, 40, 200)
+    prof = np.clip(600 * np.exp(-0.5 * ((j - c[:, None]) / 2.0) ** 2) + rng.normal(0, 2, (200, 45)),
+                   0, 255).round()
+    prof[::7] *= 0.3  # unsaturated rows keep their centroid
+    s = prof - 3.0
+    cen = c + rng.normal(0, 0.3, 200)
+    cen[5] = np.nan
+    got = sp._saturated_centres(prof, s, cen)
+    ref = _saturated_reference(prof, s, cen)
+    assert np.array_equal(np.isnan(got), np.isnan(ref))
+    assert np.nanmax(np.abs(got - ref)) < 1e-12
+    assert np.sum(got != cen) > 50  # the clipped rows were re-centred
+
+
+def test_incremental_passes_equal_full_passes(monkeypatch) -> None:
+    """Recomputing only the columns whose window moved gives the centres of recomputing all."""
+    rng = np.random.default_rng(5)
+    H, W = 160, 300
+    y, x = np.mgrid[0:H, 0:W].astype(float)
+    blk = (((x // 25) + (y // 25)) % 2).astype(np.float32)  # squares: 1 on black
+    f = 80.3 + 0.12 * (x - W / 2) + 4e-4 * (x - W / 2) ** 2
+    img = (1 - 0.7 * blk) * (200 * np.exp(-0.5 * ((y - f) / 1.8) ** 2) + 6)
+    img = np.clip(np.rint(img + rng.normal(0, 2, img.shape)), 0, 255).astype(np.uint8)
+    mask = np.zeros((H, W), bool)
+    mask[10:-10, 10:-10] = True
+    args = (img, mask, np.array([W / 2, 80.3]), 0.12, 2.0, 8.0, blk, 0.3, False)
+    fast = sp._centres_by_column(*args)
+    full_pass = sp._column_pass
+    calls = []
+
+    def every_column(img_, blk_, cols, top, *rest):
+        calls.append(len(cols))
+        return full_pass(img_, blk_, cols, top, *rest)
+
+    monkeypatch.setattr(sp, "_column_pass", every_column)
+    sp._centres_by_column(*args)
+    assert len(calls) >= 2 and min(calls) < max(calls)  # later passes: the moved columns
+    monkeypatch.undo()
+
+    # reference: all columns every pass (windows from the previous pass's centres)
+    cols = np.flatnonzero(mask.any(axis=0))
+    y_cur = 80.3 + 0.12 * (cols - W / 2)
+    width = sp._fwhm(sp._profiles(img, cols, y_cur, 30)[0], 2.0)
+    L = int(min(max(np.ceil(4 * width) + 6, 10), (H - 1) // 2))
+    half = max(1.5 * width, 2.0)
+    for _ in range(4):
+        top = sp._profile_top(y_cur, L, H)
+        _, _, _, _, peak, cen = full_pass(img, blk, cols, top, L, max(width / 2.355, 0.8),
+                                          0.3, half)
+        ok = np.isfinite(cen) & (peak >= 8.0 * 2.0)
+        y_cur = np.where(ok, top + cen, y_cur)
+    pts = fast[0]
+    ref = dict(zip(cols.tolist(), y_cur))
+    assert len(pts) > 200
+    assert max(abs(yy - ref[int(xx)]) for xx, yy in pts) < 1e-9
+    assert np.abs(pts[:, 1] - (80.3 + 0.12 * (pts[:, 0] - W / 2)
+                               + 4e-4 * (pts[:, 0] - W / 2) ** 2)).max() < 0.3
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_closed_form_directions_match_the_svd(seed) -> None:
+    rng = np.random.default_rng(seed)
+    t = np.array([np.cos(seed), np.sin(seed)])
+    p = rng.normal(0, 30, (50, 1)) * t + rng.normal(0, 0.5, (50, 2)) + [400.0, -90.0]
+    _, _, vt = np.linalg.svd(p - p.mean(0), full_matrices=False)
+    d = sp._principal_direction(p - p.mean(0))
+    assert abs(abs(d @ vt[0]) - 1) < 1e-12
+    line = fit_line_2d(p)
+    assert abs(abs(line.normal @ vt[1]) - 1) < 1e-12
+    assert np.allclose(np.abs(line.distance(p)), np.abs((p - p.mean(0)) @ vt[1]), atol=1e-9)
