@@ -13,6 +13,7 @@ pose) is kept beside it for comparison.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -353,22 +354,29 @@ def find_v_boards(image: np.ndarray, board: BoardSpec,
         img = np.clip(img, 0, 255).astype(np.uint8)
     views: list[BoardView] = []
     work = img
-    for k in range(2):
-        corners = detect_chessboard(work, board.pattern_size, downscale=0.5)
-        if corners is None:
-            corners = detect_chessboard(work, board.pattern_size, exhaustive=True)
-        if corners is None:
-            raise ValueError(f"found {k} of the 2 chessboards of the V "
-                             f"({board.inner_corners[0]}x{board.inner_corners[1]} inner corners); "
-                             "check v_board.inner_corners in dataset.json, lighting and focus")
-        corners = sharpest_corners(work, corners, board, camera)
-        view = board_view(camera, corners, board)
-        if views:
-            _check_distinct(views[0], view, board)
-        views.append(view)
-        if k == 0:
-            side = _mean_square_px(corners, board)
-            work = _fill_board(img, view.outline_px, grow_px=max(1, round(0.1 * side)))
+    # each board's sub-pixel competition (sharpest_corners, OpenCV's SB search: most of the
+    # time here) runs in a thread while the next board is searched; cv2 releases the GIL
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = None
+        for k in range(2):
+            corners = detect_chessboard(work, board.pattern_size, downscale=0.5)
+            if corners is None:
+                corners = detect_chessboard(work, board.pattern_size, exhaustive=True)
+            if corners is None:
+                raise ValueError(f"found {k} of the 2 chessboards of the V "
+                                 f"({board.inner_corners[0]}x{board.inner_corners[1]} inner "
+                                 "corners); check v_board.inner_corners in dataset.json, "
+                                 "lighting and focus")
+            if k == 0:
+                pending = pool.submit(sharpest_corners, work, corners, board, camera)
+                first = board_view(camera, corners, board)  # its outline, to paint it over
+                side = _mean_square_px(corners, board)
+                work = _fill_board(img, first.outline_px, grow_px=max(1, round(0.1 * side)))
+            else:
+                views.append(board_view(camera, pending.result(), board))
+                view = board_view(camera, sharpest_corners(work, corners, board, camera), board)
+                _check_distinct(views[0], view, board)
+                views.append(view)
     views.sort(key=lambda v: v.centroid_px[0])
     out = []
     for v in views:
