@@ -71,6 +71,15 @@ def test_scan_no_return_and_range_limits(tmp_path):
     assert np.isnan(rng[[1, 2, 4]]).all()  # 0, empty, beyond range_max
 
 
+def test_ros_spellings_of_no_return_read_as_no_return(tmp_path):
+    """ROS exports a LaserScan's beams without a return as inf, -inf or nan (REP 117)."""
+    p = tmp_path / "scan.csv"
+    p.write_text("angle_deg,range_mm\n-1,1000\n-0.5,inf\n0,-inf\n0.5,NaN\n1,+Infinity\n1.5,1200\n")
+    ang, rng = read_scan(p)
+    assert rng[0] == 1000 and rng[5] == 1200
+    assert np.isnan(rng[1:5]).all()
+
+
 @pytest.mark.parametrize("mutate, match", [
     (lambda m: m.update(format="lidarcal-dataset/9"), "unknown format"),
     (lambda m: m.pop("v_board"), "missing key 'v_board'"),
@@ -113,7 +122,8 @@ def test_bad_positions(tmp_path, text, match):
 
 
 @pytest.mark.parametrize("text, match", [
-    ("angle_deg,range_mm\n-1,1000\n0,nan\n", r"row 3: 'range_mm' is not a finite number"),
+    ("angle_deg,range_mm\n-1,1000\n0,1e400x\n", r"row 3: 'range_mm' is not a finite number"),
+    ("angle_deg,range_mm\n-1,1000\nnan,1000\n", r"row 3: 'angle_deg' is not a"),
     ("angle_deg,range_mm\n-1,1000\n0,-4\n", "negative range"),
     ("angle_deg,range_mm\n-1,1000\n0,abc\n", "not a finite number"),
     ("angle_deg,rng\n-1,1000\n", "missing column"),

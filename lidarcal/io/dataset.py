@@ -519,10 +519,17 @@ def _check_beam_angles(path: Path, ang: np.ndarray, lidar: LidarSpec) -> None:
                                  f"{lidar.angle_max_deg:g}); fix dataset.json's lidar block or the scan")
 
 
+_NON_FINITE = {"inf", "infinity", "nan"}  # range_mm spellings of "no return" (_ranges)
+
+
 def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
             values: np.ndarray | None = None) -> np.ndarray:
     """Range column (its text, or its finite ``values``): empty or 0 = no return, NaN (as are
-    ranges outside the LiDAR's limits)."""
+    ranges outside the LiDAR's limits). ``inf``, ``-inf`` and ``nan`` are no return too: ROS
+    exports a LaserScan's beams that way (REP 117: +inf nothing within range_max, -inf too
+    close, NaN an invalid measurement)."""
+    if values is None:
+        text = ["0" if t.strip().lower().lstrip("+-") in _NON_FINITE else t for t in text]
     rng = _numeric_column(text, path, "range_mm", allow_empty=True) if values is None \
         else values.copy()
     if np.any(rng < 0):
