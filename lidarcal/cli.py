@@ -141,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--strict", action="store_true",
                    help="stop (exit 2) at the first position that cannot be solved; by default "
                         "it is skipped with a warning naming its file while >= 3 positions remain")
+    s.add_argument("--fit-planes", action="store_true",
+                   help="the joint fit also refines the two board planes from the scans and "
+                        "stripes (helps where board.png is weak, e.g. a wide-angle camera "
+                        "calibrated from photos; several times slower)")
     s.add_argument("--skip-failed", action="store_true",
                    help="no effect, kept so old commands still run: skipping failed positions "
                         "is the default (see --strict)")
@@ -328,7 +332,7 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
 
         res = calibrate(ds, skip=a.skip, strict=a.strict,
                         progress=not a.no_progress and sys.stderr.isatty(), method=a.method,
-                        images=images)
+                        images=images, fit_planes=a.fit_planes)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     path = write_calibration(res, a.out, command=" ".join(["lidarcal", *sys.argv[1:]]))

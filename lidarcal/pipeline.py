@@ -256,7 +256,7 @@ def find_boards(ds: Dataset, camera: CameraModel, image: np.ndarray | None = Non
 def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),
               strict: bool = False, method: str = DEFAULT_METHOD, progress: bool = False,
               workers: int | None = None, images: ImagePrefetch | None = None,
-              skip_failed: bool | None = None) -> CalibrationResult:
+              skip_failed: bool | None = None, fit_planes: bool = False) -> CalibrationResult:
     """Run sections 1 and 2 of the paper on a dataset folder.
 
     ``method`` picks the pose function that fills ``poses``: "joint" (the joint
@@ -269,6 +269,9 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     naming its file) instead of being skipped with a warning (the default, while at
     least ``MIN_POSITIONS`` remain). ``skip_failed`` is accepted for old callers and
     ignored (skipping is the default now).
+    ``fit_planes``: the joint fit also refines the two board planes (``lidarcal.joint.fit_joint``;
+    helps where the one board image is weak, e.g. a wide-angle camera calibrated from photos;
+    several times slower).
     ``images``: stripe images already being decoded (:class:`lidarcal.io.dataset.ImagePrefetch`);
     by default they are decoded in a background thread while the boards are found. Either
     way the decoding stops (:meth:`~lidarcal.io.dataset.ImagePrefetch.close`) before the
@@ -301,7 +304,7 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
         # decoded yet are decoded by the workers, on both cores, instead of by one thread
         images.close()
         return _calibrate(ds, camera, intr, boards, todo, skip, strict, method, progress,
-                          workers, rho)
+                          workers, rho, fit_planes)
     finally:
         _WORKER.pop("images", None)
         if own:
@@ -339,7 +342,7 @@ def _worker_pool(workers: int, camera: CameraModel, boards: tuple[BoardView, Boa
 def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
                boards: tuple[BoardView, BoardView], todo: list[Position], skip: set[int],
                strict: bool, method: str, progress: bool, workers: int | None,
-               rho: float | None) -> CalibrationResult:
+               rho: float | None, fit_planes: bool = False) -> CalibrationResult:
     skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
     warnings: list[str] = []
     workers = workers or min(2, os.cpu_count() or 1)
@@ -369,7 +372,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
         from .joint import fit_joint
 
         try:
-            res.joint_model = fit_joint(res)
+            res.joint_model = fit_joint(res, fit_planes=fit_planes)
         except (ValueError, np.linalg.LinAlgError) as e:
             res.method = "rigid"
             warnings.append(f"the joint fit failed ({e}); 'poses' holds the rigid fit instead")
@@ -510,6 +513,9 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
         out["sigma"] = sigma_block(res.joint_model, res.positions)
     if res.method == "joint" and getattr(res.joint_model, "ranging", None) is not None:
         out["ranging"] = res.joint_model.ranging.to_dict()  # lidarcal.ranging
+    if res.joint_model is not None and res.joint_model.info.get("fit_planes"):
+        # --fit-planes: the board planes the joint fit refined (``boards`` keeps the camera's)
+        out["boards_joint"] = [pl.to_dict() for pl in res.joint_model.info["board_planes"]]
     out.update({
         "boards": [{**b.plane.to_dict(), "reprojection_rms_px": float(b.reprojection_rms_px[0]),
                     "pnp": {**b.plane_pnp.to_dict(),
