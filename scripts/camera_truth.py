@@ -202,7 +202,7 @@ def plane_table(path: Path, truth: dict, ds, cam_est: CameraModel | None) -> pd.
             c = v.corners_px
             R_h, T_h = pose_from_homography(cam, c, obj)
             K, dist = np.asarray(cam.K, float), np.asarray(cam.dist, float)
-            ok, rv_i, tv_i = cv2.solvePnP(obj, c, K, dist, flags=cv2.SOLVEPNP_IPPE)
+            _ok, rv_i, tv_i = cv2.solvePnP(obj, c, K, dist, flags=cv2.SOLVEPNP_IPPE)
             poses = {"homography": (R_h, T_h), "IPPE": (cv2.Rodrigues(rv_i)[0], tv_i.ravel()),
                      "PnP iter from H": pose_pnp(cam, c, obj, R_h, T_h),
                      "PnP iter from IPPE": pose_pnp(cam, c, obj)}

@@ -98,9 +98,9 @@ def _corrupt(ds, case):
         # a flat wall 2 m ahead instead of the V
         _scan(scan, lambda d: d.assign(range_mm=2000.0 / np.cos(np.radians(d.angle_deg))))
         return scan.name
-    if case == "nan range":
-        _scan(scan, lambda d: d.assign(range_mm=d.range_mm.where(d.index != 5, np.nan).astype(object)
-                                       .where(d.index != 5, "nan")))
+    if case == "overflowing range":  # nan/inf are no return (ROS, REP 117); 1e999 is no range
+        _scan(scan, lambda d: d.assign(range_mm=d.range_mm.astype(object)
+                                       .where(d.index != 5, "1e999")))
         return scan.name
     if case == "negative range":
         _scan(scan, lambda d: d.assign(range_mm=d.range_mm.where(d.index != 5, -3.0)))
@@ -146,7 +146,7 @@ FATAL_CASES = ["board not found", "fewer than 3", "duplicate psi", "incomplete p
 # one position's files are broken: that position fails alone (skipped by default, fatal with
 # --strict)
 POSITION_CASES = ["missing png", "corrupt png", "wrong size", "no stripe", "scan no segment",
-                  "scan one segment", "nan range", "negative range", "non-numeric range",
+                  "scan one segment", "overflowing range", "negative range", "non-numeric range",
                   "missing scan"]
 
 

@@ -75,7 +75,7 @@ def test_ros_spellings_of_no_return_read_as_no_return(tmp_path):
     """ROS exports a LaserScan's beams without a return as inf, -inf or nan (REP 117)."""
     p = tmp_path / "scan.csv"
     p.write_text("angle_deg,range_mm\n-1,1000\n-0.5,inf\n0,-inf\n0.5,NaN\n1,+Infinity\n1.5,1200\n")
-    ang, rng = read_scan(p)
+    _, rng = read_scan(p)
     assert rng[0] == 1000 and rng[5] == 1200
     assert np.isnan(rng[1:5]).all()
 
