@@ -9,12 +9,35 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
 import sys
 import traceback
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
+
+def _numpy_one_blas_thread():
+    """Import numpy with OpenBLAS on one thread in this process (its worker processes are
+    forked from it and each takes a core: BLAS threads would only compete with them;
+    measured on the bundled dataset: 0.2 s less CPU per calibration, same
+    calibration.json), then restore the environment so that child processes
+    (notebook kernels) keep their own setting. No effect when numpy is already loaded."""
+    keys = ("OPENBLAS_NUM_THREADS",)
+    old = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ.setdefault(k, "1")
+    try:
+        import numpy
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return numpy
+
+
+np = _numpy_one_blas_thread()
 
 from .io.dataset import DatasetError
 
