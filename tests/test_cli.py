@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -408,6 +409,15 @@ def test_skipped_position_is_listed_in_the_report(dataset_copy, tmp_path, capsys
     assert "1 position(s) skipped" in src
 
 
+def _calibrate_refused(dataset: Path, tmp_path: Path) -> str:
+    """``lidarcal calibrate`` as a process that must exit 2 writing nothing: its last line."""
+    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset), "--out",
+                        str(tmp_path / "cal")], capture_output=True, text=True, check=False)
+    assert p.returncode == 2, p.stderr
+    assert not (tmp_path / "cal" / "calibration.json").exists()
+    return p.stderr.strip().splitlines()[-1]
+
+
 def test_angles_in_radians_are_refused_naming_positions_csv(dataset_copy, tmp_path):
     # psi_deg written in radians: the samples turn 57 times more than the angles say; calibrating
     # anyway gave poses a metre off with exit 0
@@ -415,12 +425,8 @@ def test_angles_in_radians_are_refused_naming_positions_csv(dataset_copy, tmp_pa
     df = pd.read_csv(pos)
     df["psi_deg"] = np.radians(df["psi_deg"])
     df.to_csv(pos, index=False)
-    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out",
-                        str(tmp_path / "cal")], capture_output=True, text=True, check=False)
-    assert p.returncode == 2, p.stderr
-    last = p.stderr.strip().splitlines()[-1]
+    last = _calibrate_refused(dataset_copy, tmp_path)
     assert last.startswith(f"error: {pos}: the single-shot poses turn") and "radians?" in last
-    assert not (tmp_path / "cal" / "calibration.json").exists()
 
 
 def test_skip_of_an_index_that_does_not_exist_is_refused(small_dataset, tmp_path, capsys):
@@ -440,12 +446,8 @@ def test_a_z_axis_hint_perpendicular_to_the_lidar_z_is_refused(dataset_copy, tmp
     meta = json.loads(dj.read_text())
     meta["lidar"]["z_axis_hint"] = [1, 0, 0]
     dj.write_text(json.dumps(meta))
-    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(dataset_copy), "--out",
-                        str(tmp_path / "cal")], capture_output=True, text=True, check=False)
-    assert p.returncode == 2, p.stderr
-    last = p.stderr.strip().splitlines()[-1]
+    last = _calibrate_refused(dataset_copy, tmp_path)
     assert last.startswith(f"error: {dj}: lidar.z_axis_hint") and "perpendicular" in last
-    assert not (tmp_path / "cal" / "calibration.json").exists()
 
 
 def test_a_z_axis_hint_far_from_the_lidar_z_warns(dataset_copy, tmp_path, capsys):
