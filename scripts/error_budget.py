@@ -178,9 +178,11 @@ def range_error_table(res, truth: dict, scans: dict) -> tuple[dict, pd.DataFrame
     return summary, table.error_mm.agg(["count", "mean", "std"])
 
 
-def white_noise_floor(res, truth: dict, scans: dict, n: int, seed: int = 0) -> dict:
-    """The rigid pose function's mean true centre error with the true camera side, from the
-    rendered scans and from ``n`` copies whose kept returns read true range + white noise."""
+def white_noise_floor(res, truth: dict, scans: dict, n: int, seed: int = 0,
+                      camera: str = "truth") -> dict:
+    """The rigid pose function's mean true centre error with the true camera side (``camera=
+    "truth"``, "BL") or the estimated one (``"estimate"``), from the rendered scans and from
+    ``n`` copies whose kept returns read true range + white noise."""
     from lidarcal.evaluate import pose_error, segment_boards, truth_poses, truth_scan_line
     from lidarcal.io.dataset import read_scan
     from lidarcal.pose import single_shot_pose
@@ -199,7 +201,9 @@ def white_noise_floor(res, truth: dict, scans: dict, n: int, seed: int = 0) -> d
             th = np.radians(ang[beams])
             b = np.column_stack([np.cos(th), np.sin(th)])
             segs.append((b, scan_points(ang, rng)[beams], line.offset / (b @ line.normal)))
-        setup.append((p, _bl_camera(p, truth), segs))
+        cl = p.camera_lines
+        setup.append((p, _bl_camera(p, truth) if camera == "truth" else (cl.E, cl.l, cl.alpha),
+                      segs))
     psi = np.array([p.psi_deg for p in res.positions])
 
     def rigid_error(noise: np.random.Generator | None) -> float:
@@ -264,9 +268,10 @@ def main() -> None:
             print("kept returns' range errors against truth: " +
                   ", ".join(f"{k} {v:.4g}" for k, v in summary.items()))
             print(by_inc.round(3).to_string())
-            floor = white_noise_floor(res, truth, scans, args.white_noise)
-            print("rigid pose function, true camera side: " +
-                  ", ".join(f"{k} {v:.4g}" for k, v in floor.items()))
+            for cam in ("truth", "estimate"):
+                floor = white_noise_floor(res, truth, scans, args.white_noise, camera=cam)
+                print(f"rigid pose function, {cam} camera side: " +
+                      ", ".join(f"{k} {v:.4g}" for k, v in floor.items()))
 
 
 if __name__ == "__main__":

@@ -151,3 +151,41 @@ def test_wide_rig_kept_returns_are_unbiased_white_noise(wide8):
     assert abs(e.mean()) < 4 * sigma / np.sqrt(len(e)), e.mean()
     assert 0.9 < e.std() / sigma < 1.1, e.std()
     assert stats.chi2.ppf(0.001, k) < chi2 < stats.chi2.ppf(0.999, k), chi2
+
+
+def test_wide_rig_without_range_noise_leaves_only_the_rounding(tmp_path):
+    """With the range noise off (footprint, mixed pixels at the fold and the edges, the V split
+    and its trimming all kept) and the true camera side, the single-shot samples' centre errors
+    are those of the scans' 0.1 mm rounding alone: their mean square over the V fit's bound for
+    a uniform 0.1 mm quantum (sigma 0.1 / sqrt(12) mm) is a chi-square-like ratio near 1
+    (0.1 %..99.9 % of chi2_8 / 8: 0.19..3.3). A systematic scan error of 0.03 mm would read ~7
+    (issue 13: the wide rig's pose function error is the range noise's, not the LiDAR model's)."""
+    from lidarcal.io.dataset import load_dataset, read_scan
+    from lidarcal.pipeline import calibrate
+    from lidarcal.pose import single_shot_pose
+    from lidarcal.scan import scan_points
+    from lidarcal.synthetic import simulate
+    from lidarcal.synthetic.config import get_rig
+
+    rig = get_rig("wide").with_(range_noise_mm=0.0)
+    path = simulate(tmp_path / "quiet", seed=3, rig=rig, n_positions=8, with_intrinsics=False,
+                    with_sweeps=False)
+    truth = json.loads((path / "truth.json").read_text())
+    res = calibrate(path, method="rigid", workers=1)
+    ds = load_dataset(path)
+    scans = {p.index: p.scan for p in ds.positions}
+    tp, TB = truth_poses(truth), truth_board_planes(truth)
+    sigma = 0.1 / np.sqrt(12.0)
+    ratios = []
+    for p in res.positions:
+        ang, rng = read_scan(scans[p.index], ds.lidar)
+        pts = scan_points(ang, rng)
+        p1, p2 = pts[p.segments.first], pts[p.segments.second]
+        E, l, alpha = truth_lines(truth, p.index, match_planes(list(p.camera_lines.board_planes), TB))
+        ll = fit_v_lines(p1, p2, alpha)
+        pose = single_shot_pose(l, E, alpha, ll, ds.lidar.z_axis_hint)
+        b = v_fit_crlb(p1, p2, ll.line1.normal, (ll.line1.offset, ll.line2.offset), alpha,
+                       ll.sign, sigma)
+        ratios.append((np.linalg.norm(pose.T - tp[p.index].T) / b["centre_rms_mm"]) ** 2)
+    assert len(ratios) == 8
+    assert 0.15 < np.mean(ratios) < 3.5, ratios
