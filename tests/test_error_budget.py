@@ -128,7 +128,8 @@ def test_wide_rig_kept_returns_are_unbiased_white_noise(wide8):
     the fold and the board edges) read the true ray-plane range plus the injected white noise:
     no range bias (mean within 4 standard errors of 0), the injected sigma (within 10 %: the
     standard deviation of a sample standard deviation of ~1400 returns is ~2 %), and no bias
-    per segment (their means' chi-square within its 0.1 %..99.9 % quantiles). The pose
+    per segment (the chi-square of their means, and of their tilts along the segment, within
+    its 0.1 %..99.9 % quantiles). The pose
     function's scan-side floor is then the noise's, not a systematic error (issue 13)."""
     from lidarcal.io.dataset import load_dataset, read_scan
 
@@ -137,7 +138,7 @@ def test_wide_rig_kept_returns_are_unbiased_white_noise(wide8):
     sigma = float(truth["noise"]["range_noise_mm"])
     ds = load_dataset(path)
     scans = {p.index: p.scan for p in ds.positions}
-    errors, chi2 = [], 0.0
+    errors, chi2, chi2_tilt = [], 0.0, 0.0
     for p in res.positions:
         ang, rng = read_scan(scans[p.index], ds.lidar)
         for beams, board in zip((p.segments.first, p.segments.second), segment_boards(truth, p)):
@@ -145,12 +146,16 @@ def test_wide_rig_kept_returns_are_unbiased_white_noise(wide8):
                                   rng[beams])["error_mm"]
             errors.append(e)
             chi2 += (e.mean() / (sigma / np.sqrt(len(e)))) ** 2
+            # tilt along the segment (a turn of the line, the pose's most sensitive error)
+            x = np.linspace(-1.0, 1.0, len(e))
+            chi2_tilt += (x @ e / (x @ x) / (sigma / np.sqrt(x @ x))) ** 2
     e = np.concatenate(errors)
     k = len(errors)
     assert k == 16 and len(e) > 800
     assert abs(e.mean()) < 4 * sigma / np.sqrt(len(e)), e.mean()
     assert 0.9 < e.std() / sigma < 1.1, e.std()
     assert stats.chi2.ppf(0.001, k) < chi2 < stats.chi2.ppf(0.999, k), chi2
+    assert stats.chi2.ppf(0.001, k) < chi2_tilt < stats.chi2.ppf(0.999, k), chi2_tilt
 
 
 def test_wide_rig_without_range_noise_leaves_only_the_rounding(tmp_path):
