@@ -95,6 +95,40 @@ def truth_lines(truth: dict, index: int, order: list[int] | None = None
     return E, l, float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
 
 
+def truth_scan_line(truth: dict, index: int, board: int):
+    """Board ``board`` (truth.json's index) seen in the LiDAR plane at position ``index``: the
+    board plane ``n . X = d`` with ``X = R x + T`` (``X_cam = R @ X_lidar + T``) cut by the
+    LiDAR's z = 0 plane, a :class:`~lidarcal.scan.Line2D` ``n' . p = c`` oriented so that
+    ``c >= 0`` (a positive distance is beyond the board, away from the LiDAR)."""
+    from .scan import Line2D
+
+    P = truth_poses(truth)[index]
+    B = truth_board_planes(truth)[board]
+    n = np.asarray(P.R).T @ B.normal
+    c = float(B.d - B.normal @ np.asarray(P.T))
+    s = float(np.hypot(n[0], n[1])) * (1.0 if c >= 0 else -1.0)
+    return Line2D(n[:2] / s, c / s)
+
+
+def scan_range_errors(line, angle_deg: np.ndarray, range_mm: np.ndarray) -> dict[str, np.ndarray]:
+    """Range errors of returns on a known line (eq. 6 read backwards): the measured range minus
+    the true range ``c / (n . b)`` along each beam ``b = (cos theta, sin theta)``, mm, and the
+    incidence angle of each beam on the line (deg). ``line`` from :func:`truth_scan_line`."""
+    th = np.radians(np.asarray(angle_deg, float))
+    nb = np.cos(th) * line.normal[0] + np.sin(th) * line.normal[1]
+    return {"error_mm": np.asarray(range_mm, float) - line.offset / nb,
+            "incidence_deg": np.degrees(np.arccos(np.clip(np.abs(nb), 0.0, 1.0)))}
+
+
+def segment_boards(truth: dict, position) -> tuple[int, int]:
+    """truth.json's board index of scan segment 1 and 2 of a pipeline position (its camera
+    boards matched by normal, :func:`match_planes`, and the pose's pairing
+    ``info["pairs"]``: camera board k <-> segment ``pairs[k]``)."""
+    order = match_planes(list(position.camera_lines.board_planes), truth_board_planes(truth))
+    pairs = list(position.pose.info["pairs"])
+    return order[pairs.index(0)], order[pairs.index(1)]
+
+
 def v_fit_crlb(points1: np.ndarray, points2: np.ndarray, normal1: np.ndarray, offsets: tuple[
         float, float], alpha: float, sign: int, range_noise_mm: float) -> dict[str, object]:
     """Cramer-Rao bound of the constrained V fit of eqs. (7)-(12) for range noise along the
