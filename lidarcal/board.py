@@ -369,9 +369,12 @@ def find_v_boards(image: np.ndarray, board: BoardSpec,
                                  "lighting and focus")
             if k == 0:
                 pending = pool.submit(sharpest_corners, work, corners, board, camera)
-                first = board_view(camera, corners, board)  # its outline, to paint it over
+                # painted over from the detector's corners (the fill grows by a tenth of a
+                # square, far beyond the sub-pixel refinement the thread is doing)
+                R, T = pose_pnp(camera, corners, board.object_points())
+                outline = board_outline_px(camera, R, T, board, margin_squares=1.0)
                 side = _mean_square_px(corners, board)
-                work = _fill_board(img, first.outline_px, grow_px=max(1, round(0.1 * side)))
+                work = _fill_board(img, outline, grow_px=max(1, round(0.1 * side)))
             else:
                 views.append(board_view(camera, pending.result(), board))
                 view = board_view(camera, sharpest_corners(work, corners, board, camera), board)
