@@ -177,12 +177,15 @@ def _check_calibrate(argv, p, cwd, out, truth):
     assert err.centre_mm.mean() < 1.0 and err.z_axis_deg.mean() < 0.03 \
         and err.x_axis_deg.mean() < 0.08, err
     assert "positions span only" in p.stderr
-    if "--fit-planes" in argv:  # the refined planes stay near the camera's (corners 0.03 px)
+    if "--fit-planes" in argv:
+        # the refined planes stay near the camera's (corners 0.03 px; measured shifts 0.0001-
+        # 0.0002 deg and 0.001 mm) and the fit's own plane-shift check stays silent
         assert len(cal["boards_joint"]) == 2
         for fitted, cam in zip(cal["boards_joint"], cal["boards"]):
             cos = abs(np.dot(fitted["normal"], cam["pnp"]["normal"]))
-            assert np.degrees(np.arccos(min(cos, 1.0))) < 0.1
-            assert abs(fitted["d_mm"] - cam["pnp"]["d_mm"]) < 2.0
+            assert np.degrees(np.arccos(min(cos, 1.0))) < 0.01
+            assert abs(fitted["d_mm"] - cam["pnp"]["d_mm"]) < 0.1
+        assert not any("moved the board planes" in w for w in cal["warnings"])
     else:
         assert "boards_joint" not in cal
 
