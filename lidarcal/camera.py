@@ -353,7 +353,7 @@ def saddle_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     e y + f`` is fitted by Gaussian-weighted least squares over a half window of
     ``SADDLE_WINDOW_SHARE`` of its local square side, and the corner moves to the
     quadric's stationary point ``[2a b; b 2c] p = -[d e]``; ``SADDLE_ITERATIONS`` times,
-    the window re-centred (bilinear samples, ``scipy.ndimage.map_coordinates``). An ideal
+    the window re-centred (bilinear samples, :func:`_bilinear_patches`). An ideal
     corner is point-symmetric (``I(-x) = I(x)``), and so is its blurred image under any
     affine view, so its saddle is the corner itself; the smoothing averages the noise over
     a large part of the square. A corner whose fit is no saddle of the board's contrast
@@ -362,8 +362,6 @@ def saddle_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     off the board's smooth grid (:func:`corner_outliers`) keeps its position in ``corners``;
     None when more than 10 % of the corners (at least 3) do.
     """
-    from scipy.ndimage import map_coordinates
-
     c = np.asarray(corners, float).reshape(-1, 2)
     side = local_square_px(c, pattern_size)
     sigma = SADDLE_SMOOTH_SHARE * float(np.median(side))
@@ -390,8 +388,7 @@ def saddle_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
         fit = np.linalg.pinv(A * sw[:, None]) * sw[None, :]  # (6, n) weighted least squares
         for _ in range(SADDLE_ITERATIONS):
             p = out[sel]
-            Z = map_coordinates(img, [p[:, 1, None] + y[None], p[:, 0, None] + x[None]],
-                                order=1, mode="nearest")
+            Z = _bilinear_patches(img, p, w).reshape(len(sel), -1)
             # einsum, not BLAS: a product this small costs less than waking BLAS threads
             a, b, cc, d, e, _ = np.einsum("kn,mn->km", fit, Z)
             det = 4 * a * cc - b * b
@@ -410,6 +407,21 @@ def saddle_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     if bad.sum() > max(2, 0.1 * len(c)):
         return None
     return np.where(bad[:, None], c, out)
+
+
+def _bilinear_patches(img: np.ndarray, centres: np.ndarray, w: int) -> np.ndarray:
+    """Bilinear samples (n, 2w+1, 2w+1) of ``img`` on the pixel grid offsets -w..w around each
+    centre (n, 2) (x, y); indices beyond the image repeat its edge. All samples of a patch
+    share the centre's fractional part, so one (2w+2)^2 integer patch and four weights do."""
+    base = np.floor(centres).astype(int)
+    f = (centres - base)[:, :, None, None]
+    r = np.arange(-w, w + 2)
+    rows = np.clip(base[:, 1, None] + r, 0, img.shape[0] - 1)
+    cols = np.clip(base[:, 0, None] + r, 0, img.shape[1] - 1)
+    P = img[rows[:, :, None], cols[:, None, :]].astype(np.float64)
+    fx, fy = f[:, 0], f[:, 1]
+    return ((1 - fy) * ((1 - fx) * P[:, :-1, :-1] + fx * P[:, :-1, 1:])
+            + fy * ((1 - fx) * P[:, 1:, :-1] + fx * P[:, 1:, 1:]))
 
 
 def _gray(image: np.ndarray) -> np.ndarray:

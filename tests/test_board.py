@@ -332,3 +332,21 @@ def test_sharpest_corners_on_the_real_tapas_views() -> None:
         assert np.max(np.linalg.norm(s - c, axis=1)) < 1.5, p.name
         taken += not np.array_equal(s, c)
     assert taken >= 1
+
+
+def test_bilinear_patches_match_scipy() -> None:
+    """The saddle fit's patch sampler is bilinear interpolation with the image's edge
+    repeated (``scipy.ndimage.map_coordinates``, order 1, mode "nearest"), to float32 precision,
+    centres near the border included."""
+    from scipy.ndimage import map_coordinates
+
+    from lidarcal.camera import _bilinear_patches
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 255, (120, 160)).astype(np.float32)
+    centres = np.vstack([rng.uniform(0, [159, 119], (40, 2)), [[0.2, 0.7], [158.9, 118.6]]])
+    w = 6
+    yy, xx = np.mgrid[-w:w + 1, -w:w + 1].astype(float)
+    ref = map_coordinates(img, [centres[:, 1, None, None] + yy, centres[:, 0, None, None] + xx],
+                          order=1, mode="nearest")
+    assert np.max(np.abs(_bilinear_patches(img, centres, w) - ref)) < 1e-4
