@@ -4,8 +4,10 @@ Three tables, each against truth (the true camera and the true board poses of tr
 
 1. corners: detected chessboard corners against the true projections, on board.png (both
    boards of the V) and on the intrinsics photos: RMS (px) and bias (mean dx, dy, px) of
-   lidarcal's detector beside plain OpenCV (``findChessboardCorners`` + ``cornerSubPix`` with
-   fixed windows; ``findChessboardCornersSB`` with and without ``CALIB_CB_ACCURACY``);
+   lidarcal's detector (and the saddle points of :func:`lidarcal.camera.saddle_corners`
+   from its corners, the V boards' sub-pixel candidate) beside plain OpenCV
+   (``findChessboardCorners`` + ``cornerSubPix`` with fixed windows;
+   ``findChessboardCornersSB`` with and without ``CALIB_CB_ACCURACY``);
 2. intrinsics: ``calibrate_intrinsics`` (what ``lidarcal intrinsics`` and ``calibrate`` use)
    beside plain ``cv2.calibrateCamera`` on the same photos: ray direction error over the
    image (mean, max, deg) and fx, fy, cx, cy errors (px);
@@ -28,7 +30,12 @@ import numpy as np
 import pandas as pd
 
 from lidarcal.board import find_v_boards, plane_from_pose, pose_from_homography, pose_pnp
-from lidarcal.camera import calibrate_intrinsics, detect_chessboard, project_points
+from lidarcal.camera import (
+    calibrate_intrinsics,
+    detect_chessboard,
+    project_points,
+    saddle_corners,
+)
 from lidarcal.evaluate import (
     plane_error,
     ray_direction_error_deg,
@@ -88,7 +95,11 @@ def detectors(pattern: tuple[int, int]) -> dict:
             return None if c is None else cv2.cornerSubPix(gray, c, (w, w), (-1, -1), CRIT)
         return f
 
-    out = {"lidarcal": lambda g: detect_chessboard(g, pat)}
+    def saddles(gray):
+        c = detect_chessboard(gray, pat)
+        return None if c is None else saddle_corners(gray, c, pat)
+
+    out = {"lidarcal": lambda g: detect_chessboard(g, pat), "lidarcal saddles": saddles}
     for w in (3, 5, 11):
         out[f"classic+subpix{w}"] = classic_subpix(w)
     out["SB"] = sb(0)

@@ -261,14 +261,14 @@ def test_saddle_corners_keeps_dragged_corners_and_refuses_blank(v_image) -> None
     given position, the corners far from it their saddles; no corners in the image: None."""
     from lidarcal.camera import detect_chessboard, local_square_px, saddle_corners
 
-    img, poses = v_image
+    img, _ = v_image
     det = detect_chessboard(img, BOARD.pattern_size)
     clean = saddle_corners(img, det, BOARD.pattern_size)
     k = BOARD.inner_corners[0] + 3  # an interior corner
     side = float(local_square_px(det, BOARD.pattern_size)[k])
     marked = img.copy()
     centre = det[k] + [0.3 * side, 0.15 * side]  # inside one square, near the corner
-    cv2.circle(marked, tuple(int(round(v)) for v in centre), int(0.15 * side), 0, -1)
+    cv2.circle(marked, tuple(np.round(centre).astype(int).tolist()), int(0.15 * side), 0, -1)
     out = saddle_corners(marked, det, BOARD.pattern_size)
     assert out is not None
     assert np.array_equal(out[k], det[k])
