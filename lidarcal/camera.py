@@ -337,8 +337,8 @@ SADDLE_ITERATIONS = 3
 SADDLE_TRUST_PX = 1.0
 SADDLE_TRUST_SHARE = 0.05
 #: a corner's fitted saddle must span at least this share of the board's intensity range over
-#: its window (measured: 0.35 on the simulated V boards, 0.25-0.37 (median) on the real TAPAS
-#: views; 0 on a blank or noise-only image)
+#: its window (measured, median per board: 0.35-0.38 on the simulated V boards, 0.16-0.28 on
+#: the real TAPAS views; 0 on a blank or noise-only image)
 SADDLE_MIN_CONTRAST = 0.1
 
 
