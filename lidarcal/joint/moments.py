@@ -185,6 +185,18 @@ class _MomentProblem:
         return (np.einsum("mk,mk->m", self.hs, np.take(cs, self.gs, axis=0)),
                 np.einsum("mk,mk->m", self.hp, np.take(cp, self.gp, axis=0)))
 
+    def first_moments(self, vs: np.ndarray, vp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``sum v h~`` of every group (G, 7) and (G, 4): with ``v = W r`` the gradient moments
+        ``Q c`` of the robust cost (one pass over the observations, no products)."""
+        out = []
+        for h, v, cuts in ((self.hs, vs, self.cuts_s), (self.hp, vp, self.cuts_p)):
+            b = np.zeros((self.n_groups, h.shape[1]))
+            nonempty = np.flatnonzero(np.diff(cuts) > 0)
+            if len(nonempty):
+                b[nonempty] = np.add.reduceat(h * v[:, None], cuts[nonempty], axis=0)
+            out.append(b)
+        return out[0], out[1]
+
     def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
 
@@ -219,16 +231,20 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
                  inner_tol: float = 1e-12, near: LMResult | None = None) -> LMResult:
     """Robust fit of ``prob`` (planes held) on per-group moments (module docstring).
 
-    Outer loop: residuals at ``x``, their robust weights ``W = rho'`` and second-order
+    Outer loop: residuals ``r`` at ``x``, their robust weights ``W = rho'`` and second-order
     weights ``W2 = rho' + 2 z^2 rho''`` (:func:`lidarcal.joint.solver._curvature_weights`),
-    group moments ``Q`` and ``Q2``. Inner loop: Levenberg-Marquardt on the second-order
-    model of the robust cost, ``sum (Q c0) . (c - c0) + 1/2 (c - c0)^T Q2 (c - c0)`` (+ the
-    ranging prior's): Newton steps on the robust cost, converging in a few passes. When
-    that pass does not lower the robust cost, the IRLS pass (``Q2 = Q``: a majoriser of the
-    cost, it never raises it) is taken instead. Stops when an outer pass moves the robust
-    cost by less than ``tol`` (relative). Returns the robust cost at the end (scipy's
-    definition, as :func:`lidarcal.joint.solver.irls_lm`) and the Gauss-Newton information
-    ``sum J^T Q2 J`` of the last inner step.
+    each group's gradient moment ``b = sum W r h~`` (``= Q c0``, ``Q = sum W h~ h~^T``) and
+    curvature moment ``Q2 = sum W2 h~ h~^T``. Inner loop: Levenberg-Marquardt on the
+    second-order model of the robust cost, ``sum b . (c - c0) + 1/2 (c - c0)^T Q2 (c - c0)``
+    (+ the ranging prior's): Newton steps on the robust cost, converging in a few passes.
+    When that pass does not lower the robust cost, the IRLS pass (``Q2 = Q``: a majoriser of
+    the cost, it never raises it) is taken instead. Stops when an outer pass moves the
+    robust cost by less than ``tol`` (relative), or when the next pass would: its Newton
+    decrement ``1/2 g^T H^-1 g`` (gradient ``g`` at the new ``x`` from its ``b``, ``H`` the
+    last pass's information) is below ``tol`` of the cost, or the inner loop's first
+    predicted decrease below ``inner_tol`` of ``sum W r^2`` (it would take no step). Returns
+    the robust cost at the end (scipy's definition, as :func:`lidarcal.joint.solver.irls_lm`)
+    and the Gauss-Newton information ``sum J^T Q2 J`` of the last inner step.
 
     ``near`` (another start's result on the same problem, with its information): stop
     (status 2) once an outer pass ends within three sigma of it, ``d^2 = dx^T I dx <= 9``,
@@ -243,16 +259,23 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
 
     def robust_cost(x: np.ndarray):
         """Robust cost at ``x``, its residuals' IRLS weights ``rho'`` and second-order weights
-        ``rho' + 2 z^2 rho''`` (scan, stripe, prior)."""
+        ``rho' + 2 z^2 rho''`` (scan, stripe, prior), and the gradient moments ``b`` (scan,
+        stripe) and ``q = sum W r^2`` of the weighted residuals."""
         cs, _, cp, _ = mp.coefficients(x, derivatives=False)
         rs, rp = mp.residuals(cs, cp)
+        rr = prob.prior_residuals(x)
         total, weights, curv = 0.0, [], []
-        for r in (rs, rp, prob.prior_residuals(x)):
+        for r in (rs, rp, rr):
             rho, w = _rho_and_weights(r / f_scale, loss)
             total += rho
             weights.append(w)
             curv.append(_curvature_weights(r / f_scale, w, loss))
-        return 0.5 * f_scale**2 * total, weights, curv
+        Wr_s, Wr_p = weights[0] * rs, weights[1] * rp
+        b = mp.first_moments(Wr_s, Wr_p)
+        # einsum, not BLAS: a threaded dot of ~1e5 entries stalls on a busy machine
+        q = float(np.einsum("i,i->", Wr_s, rs) + np.einsum("i,i->", Wr_p, rp)
+                  + np.sum(weights[2] * rr * rr))
+        return 0.5 * f_scale**2 * total, weights, curv, b, q
 
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
@@ -260,16 +283,21 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         for j in prob.frozen:
             Jr[:, N_RIG + j] = 0.0
 
-    def inner(x: np.ndarray, G: tuple, C: tuple, Wr: np.ndarray, Wr2: np.ndarray):
-        """Levenberg-Marquardt on the model ``sum (G c0) . (c - c0) + 1/2 (c - c0)^T C (c - c0)``
-        (+ the prior's) of the robust cost about ``x`` (``c0 = c(x)``; ``C = G``: the IRLS
+    def gradient(x: np.ndarray, b: tuple, Wr: np.ndarray) -> np.ndarray:
+        """Gradient of the robust cost at ``x`` from its gradient moments ``b``:
+        ``sum_g (dc_g/dx)^T b_g`` (+ the prior's)."""
+        _, Js, _, Jp = mp.coefficients(x)
+        return (np.einsum("gki,gk->i", Js, b[0]) + np.einsum("gki,gk->i", Jp, b[1])
+                + Jr.T @ (Wr * prob.prior_residuals(x)))
+
+    def inner(x: np.ndarray, b: tuple, q_ref: float, C: tuple, Wr: np.ndarray,
+              Wr2: np.ndarray):
+        """Levenberg-Marquardt on the model ``sum b . (c - c0) + 1/2 (c - c0)^T C (c - c0)``
+        (+ the prior's) of the robust cost about ``x`` (``c0 = c(x)``; ``C = Q``: the IRLS
         quadratic). Returns the new ``x`` and the Gauss-Newton information."""
-        (Gs, Gp), (Cs, Cp) = G, C
+        (gs0, gp0), (Cs, Cp) = b, C
         cs0, _, cp0, _ = mp.coefficients(x, derivatives=False)
         rr0 = prob.prior_residuals(x)
-        gs0 = np.einsum("gij,gj->gi", Gs, cs0)
-        gp0 = np.einsum("gij,gj->gi", Gp, cp0)
-        q_ref = float(np.sum(gs0 * cs0) + np.sum(gp0 * cp0) + np.sum(Wr * rr0 * rr0))
 
         def model(cs, cp, rr_):
             ds, dp, dr = cs - cs0, cp - cp0, rr_ - rr0
@@ -317,25 +345,36 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
                 break
         return xi, H
 
-    cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2) = robust_cost(x)
+    def settled(x: np.ndarray, cost: float, b: tuple, q: float, Wr: np.ndarray,
+                H: np.ndarray | None) -> bool:
+        """Whether another pass from ``x`` would end the loop without moving the cost by more
+        than ``tol``: its Newton decrement (``H`` the last pass's information), or the inner
+        loop's first predicted decrease against ``inner_tol``."""
+        if H is None:
+            return False
+        g = gradient(x, b, Wr)
+        step = _lm_step(H, g, 1e-4, _lm_scaling(H))  # the inner loop's first step
+        pred = abs(float(g @ step))
+        return pred <= max(inner_tol * max(q, 1e-300), 2 * tol * max(cost, 1e-300))
+
+    cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2), b, q = robust_cost(x)
     nfev += 1
     for _ in range(max_outer):
-        Q = mp.moments(Ws, Wp)
         # Newton on the robust cost first (second-order weights); the IRLS step (a
         # majoriser: never increases the cost) when that does not decrease it
-        xi, H = inner(x, Q, mp.moments(Ws2, Wp2), Wr, Wr2)
-        cn, W2, C2 = robust_cost(xi)
+        xi, H = inner(x, b, q, mp.moments(Ws2, Wp2), Wr, Wr2)
+        cn, W2, C2, b2, q2 = robust_cost(xi)
         nfev += 1
         if not (np.isfinite(cn) and cn <= cost):
-            xi, H = inner(x, Q, Q, Wr, Wr)
-            cn, W2, C2 = robust_cost(xi)
+            xi, H = inner(x, b, q, mp.moments(Ws, Wp), Wr, Wr)
+            cn, W2, C2, b2, q2 = robust_cost(xi)
             nfev += 1
         if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
             status = -1 if status == 0 else status
             break
         done = cost - cn <= tol * max(cost, 1e-300)
-        x, cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2) = xi, cn, W2, C2
-        if done:
+        x, cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2), b, q = xi, cn, W2, C2, b2, q2
+        if done or settled(x, cost, b, q, Wr, H):
             status = 1
             break
         if near is not None and near.information is not None and cost >= near.cost:
