@@ -49,7 +49,6 @@ def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
 
 
 _OBS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_TRIU = {k: np.triu_indices(k) for k in (4, 7)}  # the moment matrices' upper triangles
 
 
 def _noise_state(prob: _Problem) -> list:
@@ -64,7 +63,7 @@ def _noise_state(prob: _Problem) -> list:
 
 def _observations(prob: _Problem) -> dict:
     """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
-    (module docstring), as ``{"hs": .., "hp": ..}`` (the moments add their row products).
+    (module docstring), as ``{"hs": .., "hp": ..}``.
     They do not depend on the rig parameters: computed once per noise state and reused by
     every solve, the covariance and the jitter test on it."""
     state = _noise_state(prob)
@@ -200,23 +199,14 @@ class _MomentProblem:
     def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
 
-        One weighted pass over the products ``h~_i h~_j`` (i <= j, computed once per
-        noise state, kept with the observations) and a sum per group."""
+        One small product ``(W h~)^T h~`` per group (rows grouped): no per-row products
+        stored, nothing to rebuild when the noise model changes."""
         out = []
-        for kind, W, cuts in (("hs", Ws, self.cuts_s), ("hp", Wp, self.cuts_p)):
-            h = self.obs[kind]
-            k = h.shape[1]
-            Q = np.zeros((self.n_groups, k, k))
-            iu = _TRIU[k]
-            nonempty = np.flatnonzero(np.diff(cuts) > 0)
-            if len(nonempty):
-                F = self.obs.get("F" + kind)
-                if F is None:
-                    F = self.obs["F" + kind] = h[:, iu[0]] * h[:, iu[1]]
-                    self.obs["B" + kind] = np.empty_like(F)  # reused: no page faults per pass
-                FW = np.multiply(F, W[:, None], out=self.obs["B" + kind])
-                Q[nonempty[:, None], iu[0], iu[1]] = np.add.reduceat(FW, cuts[nonempty], axis=0)
-                Q[:, iu[1], iu[0]] = Q[:, iu[0], iu[1]]
+        for h, W, cuts in ((self.hs, Ws, self.cuts_s), (self.hp, Wp, self.cuts_p)):
+            Q = np.zeros((self.n_groups, h.shape[1], h.shape[1]))
+            hw = h * W[:, None]
+            for g in np.flatnonzero(np.diff(cuts) > 0):
+                np.matmul(hw[cuts[g]:cuts[g + 1]].T, h[cuts[g]:cuts[g + 1]], out=Q[g])
             out.append(Q)
         return out[0], out[1]
 
@@ -398,6 +388,47 @@ def _group_cross(A: np.ndarray, B: np.ndarray, W: np.ndarray, cuts: np.ndarray) 
     return out
 
 
+def _scan_plane_cross(prob: _Problem, Qs: np.ndarray) -> np.ndarray:
+    """``sum W h~ db~^T`` of every scan group (G, 7, 4) at ``x = 0``: a return's derivative
+    wrt its board's (normal, d) is ``[X, -1]`` with ``X = R_x x' + R_y y' + T`` (eq. 28, the
+    range-corrected point ``(x', y') = (x, y) - (offset + extra dark) u``), i.e. ``B_g h``
+    with ``B_g = [[R_x, R_y, -o R_x, -o R_y, -e R_x, -e R_y, T], [0 .. 0, -1]]`` (4, 7); the
+    whitening acts on the rows, so ``sum W h~ (B h~)^T = Q_g B_g^T``."""
+    R, T = _poses(*_rig(np.zeros(N_RIG), prob.base), prob.t)
+    off, ex = prob.base.ranging[0], prob.base.ranging[1]
+    Rg, Tg = np.repeat(R, 2, axis=0), np.repeat(T, 2, axis=0)  # group 2 i + b
+    B = np.zeros((len(Rg), 4, 7))
+    for j, (col, f) in enumerate(((0, 1.0), (1, 1.0), (0, -off), (1, -off), (0, -ex), (1, -ex))):
+        B[:, :3, j] = f * Rg[:, :, col]
+    B[:, :3, 6] = Tg
+    B[:, 3, 6] = -1.0
+    return Qs @ B.transpose(0, 2, 1)
+
+
+def _stripe_plane_cross(prob: _Problem, mp: _MomentProblem, Qp: np.ndarray, Wp: np.ndarray
+                        ) -> np.ndarray:
+    """``sum W h~ db~^T`` of every stripe group (G, 4, 4) at ``x = 0``: with the pixel scale
+    going as 1 / depth (:meth:`_Problem.stripe_scale`, set by :meth:`_Problem.set_stripe_scale`)
+    a centre's derivative wrt its board's (normal, d) is ``-(T . z / d) [s P, -s]``
+    (:meth:`_Problem.stripe_plane_rows`, with ``P = ray d / (ray . n)``), linear in its
+    ``h = [s P, s]``: ``Q_g C_g^T``, ``C_g = -(T . z / d) diag(1, 1, 1, -1)``. With the
+    scale held, the rows are whitened and summed."""
+    d = prob.data
+    bR, bT = prob.base.board_R, prob.base.board_T
+    nb = bR[:, :, 2]
+    db = np.einsum("ij,ij->i", nb, bT)
+    R, T = _poses(*_rig(np.zeros(N_RIG), prob.base), prob.t)
+    if prob.scale_depth is not None:
+        tz = np.repeat(np.einsum("ij,ij->i", T, R[:, :, 2]), 2) / np.tile(db, len(T))  # (G,)
+        return -tz[:, None, None] * (Qp * np.array([1.0, 1.0, 1.0, -1.0]))
+    p, b = d.stripe_pos, d.stripe_board
+    rn = np.einsum("ij,ij->i", d.stripe_rays, nb[b])[:, None]
+    Dp = (prob.stripe_plane_rows(rn, db[b][:, None], R[p, :, 2], T[p]) if len(p)
+          else np.zeros((0, 4)))
+    Dp = prob.stripe.whiten_columns(Dp) * prob.stripe.w[:, None]
+    return _group_cross(mp.hp, Dp, Wp, mp.cuts_p)
+
+
 def moments_covariance(prob: _Problem, loss: str, f_scale: float
                        ) -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`lidarcal.joint.solver._covariance` (planes held) from the group moments: exact,
@@ -410,7 +441,9 @@ def moments_covariance(prob: _Problem, loss: str, f_scale: float
     each residual's derivative wrt its board's (normal, d) is a row (scan: ``[X, -1]``,
     ``X`` the point, eq. 28; stripe: ``s (z . P) / d [-P, 1]``, eq. 5), whitened like the
     residuals, so ``J_x^T W J_b = sum_g J_g^T (sum W h~ db~^T) G_b`` (``G_b``: d(normal, d) /
-    d board pose). The cluster-robust scores of a position are ``sum_g J_g^T Q_g c_g``.
+    d board pose); those rows are linear in the observation ``h`` of their group
+    (:func:`_scan_plane_cross`, :func:`_stripe_plane_cross`), so the cross moments are
+    ``Q_g B_g^T``. The cluster-robust scores of a position are ``sum_g J_g^T Q_g c_g``.
     """
     from .solver import _inverse
 
@@ -431,21 +464,8 @@ def moments_covariance(prob: _Problem, loss: str, f_scale: float
     Hx = (np.einsum("gki,gkl,glj->ij", Js, Qs, Js) + np.einsum("gki,gkl,glj->ij", Jp, Qp, Jp)
           + (Jr.T * Wr) @ Jr)
     # cross information with the board planes (consider term)
-    bR, bT = prob.base.board_R, prob.base.board_T
-    nb = bR[:, :, 2]
-    db = np.einsum("ij,ij->i", nb, bT)
-    R, T = _poses(*_rig(np.zeros(N_RIG), prob.base), prob.t)
-    p, b = d.scan_pos, d.scan_board
-    xy = prob.scan_xy(prob.base.ranging)
-    X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
-    Ds = prob.scan.whiten_columns(np.column_stack([X, -np.ones(len(p))])) * prob.scan.w[:, None]
-    p, b = d.stripe_pos, d.stripe_board
-    rn = np.einsum("ij,ij->i", d.stripe_rays, nb[b])[:, None]
-    Dp = (prob.stripe_plane_rows(rn, db[b][:, None], R[p, :, 2], T[p]) if len(p)
-          else np.zeros((0, 4)))
-    Dp = prob.stripe.whiten_columns(Dp) * prob.stripe.w[:, None]
-    Kx = (np.einsum("gki,gkj->gij", Js, _group_cross(mp.hs, Ds, Ws, mp.cuts_s))
-          + np.einsum("gki,gkj->gij", Jp, _group_cross(mp.hp, Dp, Wp, mp.cuts_p)))  # (G, n, 4)
+    Kx = (np.einsum("gki,gkj->gij", Js, _scan_plane_cross(prob, Qs))
+          + np.einsum("gki,gkj->gij", Jp, _stripe_plane_cross(prob, mp, Qp, Wp)))  # (G, n, 4)
     Gb = prob.plane_derivatives(np.zeros(N_RIG + 2 * N_BOARD))
     brd = np.arange(mp.n_groups) % 2
     Hxb = np.concatenate([np.einsum("gij,jk->ik", Kx[brd == k], Gb[k]) for k in range(2)], 1)
@@ -455,7 +475,7 @@ def moments_covariance(prob: _Problem, loss: str, f_scale: float
     m_used = len(rs) + len(rp) + n_rng
     has_corners = d.corners_px is not None and d.object_points is not None
     if has_corners:
-        rc = prob.corner_residuals(bR, bT) / prob.sigma_corner
+        rc = prob.corner_residuals(prob.base.board_R, prob.base.board_T) / prob.sigma_corner
         wc = _irls_weights(rc / f_scale, loss)
         ss += float(np.sum(wc * rc * rc))
         m_used += len(rc)

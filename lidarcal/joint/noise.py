@@ -27,11 +27,13 @@ class _Groups:
         self.gid = pos * 2 + board
         self.n_groups = 2 * n_pos
         self.board_of_group = np.arange(self.n_groups) % 2
+        self.row_board = np.asarray(board)
         self.n = np.bincount(self.gid, minlength=self.n_groups).astype(float)
         self.sc = _along(self.gid, np.asarray(coords, float), self.n, self.n_groups)
         # residuals come grouped (position by position, board 0 then 1): group sums of a
         # whole Jacobian are then one np.add.reduceat instead of a bincount per column
         self._sorted = bool(np.all(self.gid[1:] >= self.gid[:-1]))
+        self._size = np.bincount(self.gid, minlength=self.n_groups)  # rows per group
         starts = np.searchsorted(self.gid, np.arange(self.n_groups))
         self._nonempty = np.flatnonzero(self.n > 0)
         self._starts = starts[self._nonempty]
@@ -48,9 +50,9 @@ class _Groups:
         self._update()
 
     def _counts(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n = np.bincount(self.gid, w, minlength=self.n_groups)
-        ss = np.maximum(np.bincount(self.gid, w * self.sc**2, minlength=self.n_groups), 1e-300)
-        return n, ss
+        """Per group: kept residuals ``n`` and ``|s|^2`` over them (weights ``w``)."""
+        S = self.group_sums(np.column_stack([w, w * self.sc**2]))
+        return S[:, 0], np.maximum(S[:, 1], 1e-300)
 
     def set(self, sigma, var0, var1, var0_g=None, var1_g=None) -> None:
         """Noise components per board; ``var*_g`` optionally per group (robust weights)."""
@@ -76,39 +78,59 @@ class _Groups:
         (or weights ``w``; ``counts``: their :meth:`_counts`, when known)."""
         if w is None:
             w, n, ss = self.w, self.n, self.ss
-        else:
-            n, ss = self._counts(w) if counts is None else counts
-        m0 = np.bincount(self.gid, w * r, minlength=self.n_groups) / np.maximum(n, 1e-300)
-        m1 = np.bincount(self.gid, w * r * self.sc, minlength=self.n_groups) / ss
-        return m0, m1
+        elif counts is not None:
+            n, ss = counts
+        else:  # the counts with the sums, in one pass
+            wr = w * r
+            S = self.group_sums(np.column_stack([wr, wr * self.sc, w, w * self.sc**2]))
+            return S[:, 0] / np.maximum(S[:, 2], 1e-300), S[:, 1] / np.maximum(S[:, 3], 1e-300)
+        wr = w * r
+        S = self.group_sums(np.column_stack([wr, wr * self.sc]))
+        return S[:, 0] / np.maximum(n, 1e-300), S[:, 1] / ss
 
     def whiten(self, r: np.ndarray) -> np.ndarray:
         """``V^-1/2 r`` over the kept residuals (dropped ones do not enter the moments)."""
         if len(r) == 0:
             return r
         m0, m1 = self.moments(r)
-        g = self.gid
-        return (r - self.g0[g] * m0[g] - self.g1[g] * m1[g] * self.sc) / self.sig_g[g]
+        inv = 1 / self.sig_g
+        return ((r * self.spread(inv) - self.spread(self.g0 * m0 * inv))
+                - self.spread(self.g1 * m1 * inv) * self.sc)
 
     def whiten_columns(self, J: np.ndarray) -> np.ndarray:
-        """:meth:`whiten` applied to every column of a Jacobian."""
+        """:meth:`whiten` applied to every column of a Jacobian (the group terms spread back
+        over their rows, :meth:`spread`)."""
         if J.shape[0] == 0:
             return J
-        if not self._sorted:
-            return np.column_stack([self.whiten(J[:, j]) for j in range(J.shape[1])])
         wJ = J * self.w[:, None]
-        m0 = self._group_sums(wJ) / np.maximum(self.n, 1e-300)[:, None]
-        m1 = self._group_sums(wJ * self.sc[:, None]) / self.ss[:, None]
-        g = self.gid
-        return ((J - self.g0[g][:, None] * m0[g] - (self.g1[g] * self.sc)[:, None] * m1[g])
-                / self.sig_g[g][:, None])
-
-    def _group_sums(self, A: np.ndarray) -> np.ndarray:
-        """Per-group column sums of ``A`` (rows grouped by ``gid``, sorted)."""
-        out = np.zeros((self.n_groups, A.shape[1]))
-        if len(self._nonempty):
-            out[self._nonempty] = np.add.reduceat(A, self._starts, axis=0)
+        inv = 1 / self.sig_g
+        a0 = self.group_sums(wJ) * (self.g0 * inv / np.maximum(self.n, 1e-300))[:, None]
+        a1 = self.group_sums(wJ * self.sc[:, None]) * (self.g1 * inv / self.ss)[:, None]
+        out = J * self.spread(inv)[:, None]
+        out -= self.spread(a0)
+        out -= self.spread(a1) * self.sc[:, None]
         return out
+
+    def group_sums(self, A: np.ndarray) -> np.ndarray:
+        """Per-group column sums of ``A`` (M, k) -> (G, k): one ``np.add.reduceat`` when the
+        rows are grouped (position by position, board 0 then 1, as built), else a bincount
+        per column."""
+        out = np.zeros((self.n_groups, A.shape[1]))
+        if not len(self._nonempty):
+            return out
+        if self._sorted:
+            out[self._nonempty] = np.add.reduceat(A, self._starts, axis=0)
+            return out
+        for j in range(A.shape[1]):
+            out[:, j] = np.bincount(self.gid, A[:, j], minlength=self.n_groups)
+        return out
+
+    def spread(self, v: np.ndarray) -> np.ndarray:
+        """Per-group values (G, ...) onto their rows (M, ...): ``np.repeat`` of grouped rows (a
+        copy of contiguous blocks), else a gather by ``gid``."""
+        if self._sorted:
+            return np.repeat(v, self._size, axis=0)
+        return v[self.gid]
 
     def estimate(self, r: np.ndarray, floor: float) -> None:
         """Method-of-moments noise components from residuals ``r`` at a fit (see class doc).
@@ -122,16 +144,15 @@ class _Groups:
         if len(r) == 0:
             return
         sig, v0, v1 = np.ones(2), np.zeros(2), np.zeros(2)
-        g = self.gid
         w = (np.abs(r) <= CLIP_SIGMAS * _robust_sigma(r, floor)).astype(float)
         m0, m1 = self.moments(r, w)
-        within = r - m0[g] - m1[g] * self.sc
+        within = r - self.spread(m0) - self.spread(m1) * self.sc
         for b in range(2):
-            sel = self.board_of_group[g] == b
+            sel = self.row_board == b
             if not sel.any():
                 continue
             sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
-        w = (np.abs(within) <= CLIP_SIGMAS * sig[self.board_of_group[g]]).astype(float)
+        w = (np.abs(within) <= CLIP_SIGMAS * sig[self.row_board]).astype(float)
         n, ss = self._counts(w)
         a0, a1 = self.moments(r, w, (n, ss))
         vg = [np.zeros(self.n_groups), np.zeros(self.n_groups)]
