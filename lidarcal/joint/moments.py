@@ -61,6 +61,18 @@ def _noise_state(prob: _Problem) -> list:
                      prob.base.board_R.tobytes() + prob.base.board_T.tobytes()]
 
 
+def raw_observations(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Homogeneous observations ``h`` of scans (M, 7) and stripes (S, 4) (module docstring),
+    neither whitened nor masked."""
+    d = prob.data
+    u, dark = prob.scan_u, prob.dark
+    hs = np.column_stack([d.scan_xy, u, dark[:, None] * u, np.ones(len(u))])
+    P = _stripe_points(d, prob.base.board_R, prob.base.board_T)["P"]
+    s = prob.scale_px[:, None]
+    hp = np.column_stack([s * P, s]) if len(P) else np.zeros((0, 4))
+    return hs, hp
+
+
 def _observations(prob: _Problem) -> dict:
     """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
     (module docstring), as ``{"hs": .., "hp": ..}``.
@@ -71,13 +83,8 @@ def _observations(prob: _Problem) -> dict:
     if hit is not None and all(a is b for a, b in zip(hit[0][:-1], state[:-1])) \
             and hit[0][-1] == state[-1]:
         return hit[1]
-    d = prob.data
-    u, dark = prob.scan_u, prob.dark
-    hs = np.column_stack([d.scan_xy, u, dark[:, None] * u, np.ones(len(u))])
+    hs, hp = raw_observations(prob)
     hs = _whitened(prob.scan, hs) * prob.scan.w[:, None]
-    P = _stripe_points(d, prob.base.board_R, prob.base.board_T)["P"]
-    s = prob.scale_px[:, None]
-    hp = np.column_stack([s * P, s]) if len(P) else np.zeros((0, 4))
     hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]
     obs = {"hs": hs, "hp": hp}
     _OBS_CACHE[prob.data] = (state, obs)
@@ -88,14 +95,16 @@ class _MomentProblem:
     """The scan and stripe blocks of a :class:`_Problem` as per-group homogeneous observations
     (planes held, the noise model and the masks as they are in ``prob``)."""
 
-    def __init__(self, prob: _Problem):
+    def __init__(self, prob: _Problem, observations: bool = True):
+        """``observations`` False: the coefficients only (no whitened observations)."""
         self.prob = prob
         self.n_par = N_RIG + prob.n_ranging
         bR, bT = prob.base.board_R, prob.base.board_T
         self.nb = bR[:, :, 2]
         self.db = np.einsum("ij,ij->i", self.nb, bT)
-        self.obs = _observations(prob)
-        self.hs, self.hp = self.obs["hs"], self.obs["hp"]
+        if observations:
+            self.obs = _observations(prob)
+            self.hs, self.hp = self.obs["hs"], self.obs["hp"]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
         self.n_groups = prob.scan.n_groups
         self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
@@ -181,8 +190,8 @@ class _MomentProblem:
 
     def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
-        return (np.einsum("mk,mk->m", self.hs, np.take(cs, self.gs, axis=0)),
-                np.einsum("mk,mk->m", self.hp, np.take(cp, self.gp, axis=0)))
+        return (np.einsum("mk,mk->m", self.hs, self.prob.scan.spread(cs)),
+                np.einsum("mk,mk->m", self.hp, self.prob.stripe.spread(cp)))
 
     def first_moments(self, vs: np.ndarray, vp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``sum v h~`` of every group (G, 7) and (G, 4): with ``v = W r`` the gradient moments

@@ -346,13 +346,13 @@ class _Problem:
         zL = R[np.repeat(np.arange(len(self.t)), 2), :, 2]
         line = unit(np.cross(n, zL))  # stripe direction on the board
         u = unit(np.cross(n, line))  # in the board, perpendicular to the stripe
-        g = self.stripe.gid
+        spread = self.stripe.spread  # per (position, board) -> per centre
         Jt = ent["Jt"]
-        pu = np.einsum("mij,mj->mi", Jt, u[g])
-        pl = unit(np.einsum("mij,mj->mi", Jt, line[g]))
+        pu = np.einsum("mij,mj->mi", Jt, spread(u))
+        pl = unit(np.einsum("mij,mj->mi", Jt, spread(line)))
         perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
-        du = np.abs(np.einsum("ij,ij->i", zL, u))[g]  # mm of laser offset per mm along u
-        self.scale_px = perp / np.maximum(du, 1e-9)
+        du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
+        self.scale_px = perp / spread(np.maximum(du, 1e-9))
         self.scale_depth = ent["P"][:, 2].copy()  # the depths it holds at (stripe_scale)
 
 
@@ -392,13 +392,33 @@ def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bo
         dd = np.einsum("ij,ij->i", n, bT)
         ent = per[key] = {"P": ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]}
     if jacobian and "Jt" not in ent:
-        # d pixel / d point through the lens model: cv2.projectPoints' Jacobian wrt the
-        # translation (columns 3-5) is exactly that with a zero rotation
-        _, Jt = cv2.projectPoints(ent["P"].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                  np.asarray(data.camera.K, float),
-                                  np.asarray(data.camera.dist, float))
-        ent["Jt"] = Jt[:, 3:6].reshape(-1, 2, 3)
+        ent["Jt"] = pixel_jacobian(data.camera, ent["P"])
     return ent
+
+
+def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
+    """d pixel / d point (S, 2, 3) of camera-frame points ``P`` through the lens model.
+
+    OpenCV's five-coefficient model: ``K2 J_d(x, y) [[1, 0, -x], [0, 1, -y]] / Z`` with
+    ``(x, y) = (X / Z, Y / Z)``, ``J_d`` the distortion's 2 x 2 Jacobian
+    (:func:`lidarcal.camera._distort_normalised`) and ``K2 = [[fx, skew], [0, fy]]``;
+    other models: ``cv2.projectPoints``' Jacobian wrt the translation (columns 3-5, exactly
+    that with a zero rotation)."""
+    from ..camera import _distort_normalised
+
+    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float).ravel()
+    if len(dist) != 5:
+        _, Jt = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+        return Jt[:, 3:6].reshape(-1, 2, 3)
+    iz = 1 / P[:, 2]
+    xy = P[:, :2] * iz[:, None]
+    _, Jd = _distort_normalised(camera, xy)
+    out = np.empty((len(P), 2, 3))
+    A = out[:, :, :2]  # d pixel / d (X, Y) at fixed Z: K2 J_d / Z
+    A[:, 0] = (K[0, 0] * Jd[:, 0] + K[0, 1] * Jd[:, 1]) * iz[:, None]
+    A[:, 1] = K[1, 1] * Jd[:, 1] * iz[:, None]
+    out[:, :, 2] = -(A[:, :, 0] * xy[:, :1] + A[:, :, 1] * xy[:, 1:])
+    return out
 
 
 def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
