@@ -135,17 +135,22 @@ class _Problem:
         R, T = _poses(k, a, R_ref, T_ref, self.t)
         n = bR[:, :, 2]
         dd = np.einsum("ij,ij->i", n, bT)
+        # per (position i, board b), group 2 i + b: the board's plane in the LiDAR frame
+        pos, brd = np.repeat(np.arange(len(R)), 2), np.tile([0, 1], len(R))
+        nR = np.einsum("gi,gij->gj", n[brd], R[pos])  # n . R_x, n . R_y, n . R_z
         # scan points (ranges corrected by the ranging model) in the camera frame, eq. (28),
-        # against their board's plane, eq. (3)
-        p, b = d.scan_pos, d.scan_board
+        # against their board's plane, eq. (3): x (n . R_x) + y (n . R_y) + n . T - d
         xy = self.scan_xy(rv)
-        X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
-        r_scan = np.einsum("ij,ij->i", X, n[b]) - dd[b]
-        # stripe centres back-projected onto their board (eq. 5), against the laser plane
-        p = d.stripe_pos
+        sp = self.scan.spread
+        r_scan = (xy[:, 0] * sp(nR[:, 0]) + xy[:, 1] * sp(nR[:, 1])
+                  + sp(np.einsum("gi,gi->g", n[brd], T[pos]) - dd[brd]))
+        # stripe centres back-projected onto their board (eq. 5), against the laser plane:
+        # (P - T) . z
         P = _stripe_points(d, bR, bT, cache=not np.any(x[N_RIG:]))["P"]
-        z = R[p, :, 2]
-        r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.stripe_scale(P)
+        z = R[:, :, 2][pos]
+        sp = self.stripe.spread
+        r_stripe = ((np.einsum("ij,ij->i", P, sp(z)) - sp(np.einsum("gi,gi->g", T[pos], z)))
+                    * self.stripe_scale(P))
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
         self._blocks_memo = (key, (r_scan, r_stripe))
         return r_scan, r_stripe, r_corner

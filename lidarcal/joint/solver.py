@@ -123,7 +123,7 @@ def _curvature_weights(z: np.ndarray, w: np.ndarray, loss: str) -> np.ndarray:
     if loss == "linear":
         return np.ones_like(s)
     if loss == "soft_l1":
-        return w ** 3  # (1 + s)^(-3/2)
+        return w * w * w  # (1 + s)^(-3/2)
     if loss == "huber":
         return (s <= 1).astype(float)
     if loss == "cauchy":
