@@ -393,10 +393,13 @@ def scan_coverage(data: JointData, model) -> np.ndarray:
     spans = []
     for pts, pos, brd in ((P, data.stripe_pos, data.stripe_board), (X, p, data.scan_board)):
         g = 2 * np.asarray(pos) + np.asarray(brd)
-        order = np.argsort(g, kind="stable")
-        g = g[order]
-        proj = np.einsum("ij,ij->i", pts[order], line[g]) if len(g) else np.zeros(0)
         cnt = np.bincount(g, minlength=2 * n_pos)
+        if np.all(g[1:] >= g[:-1]):  # grouped as built: each group's line spread over its rows
+            proj = np.einsum("ij,ij->i", pts, np.repeat(line, cnt, axis=0))
+        else:
+            order = np.argsort(g, kind="stable")
+            g = g[order]
+            proj = np.einsum("ij,ij->i", pts[order], line[g]) if len(g) else np.zeros(0)
         span = np.zeros(2 * n_pos)
         ne = np.flatnonzero(cnt)
         if len(ne):

@@ -84,8 +84,10 @@ def _observations(prob: _Problem) -> dict:
             and hit[0][-1] == state[-1]:
         return hit[1]
     hs, hp = raw_observations(prob)
-    hs = _whitened(prob.scan, hs) * prob.scan.w[:, None]
-    hp = _whitened(prob.stripe, hp) * prob.stripe.w[:, None]
+    hs = _whitened(prob.scan, hs)
+    hs *= prob.scan.w[:, None]
+    hp = _whitened(prob.stripe, hp)
+    hp *= prob.stripe.w[:, None]
     obs = {"hs": hs, "hp": hp}
     _OBS_CACHE[prob.data] = (state, obs)
     return obs
@@ -106,6 +108,8 @@ class _MomentProblem:
             self.obs = _observations(prob)
             self.hs, self.hp = self.obs["hs"], self.obs["hp"]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
+        self._coef_memo: dict = {}
+        self._memo_base = prob.base
         self.n_groups = prob.scan.n_groups
         self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
         self.cuts_p = np.searchsorted(self.gp, np.arange(self.n_groups + 1))
@@ -113,7 +117,22 @@ class _MomentProblem:
     def coefficients(self, x: np.ndarray, derivatives: bool = True
                      ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
         """Per group ``c`` and ``dc/dx`` for scans (G, 7), (G, 7, n) and stripes (G, 4), (G, 4, n)
-        (without ``derivatives``: ``c`` only, None for the derivatives)."""
+        (without ``derivatives``: ``c`` only, None for the derivatives). The last few are
+        kept: the solver asks again at the point it has just stepped to."""
+        key = (np.asarray(x, float).tobytes(), derivatives, self.prob.t.tobytes(),
+               self.prob.frozen)
+        if self._memo_base is not self.prob.base:
+            self._coef_memo, self._memo_base = {}, self.prob.base
+        hit = self._coef_memo.get(key)
+        if hit is None:
+            if len(self._coef_memo) >= 4:
+                self._coef_memo.pop(next(iter(self._coef_memo)))
+            hit = self._coef_memo[key] = self._coefficients(x, derivatives)
+        return hit
+
+    def _coefficients(self, x: np.ndarray, derivatives: bool
+                      ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+        """:meth:`coefficients`, computed."""
         prob = self.prob
         xr, rv = prob.split(x)
         if not derivatives:
@@ -258,23 +277,25 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
 
     def robust_cost(x: np.ndarray):
         """Robust cost at ``x``, its residuals' IRLS weights ``rho'`` and second-order weights
-        ``rho' + 2 z^2 rho''`` (scan, stripe, prior), and the gradient moments ``b`` (scan,
-        stripe) and ``q = sum W r^2`` of the weighted residuals."""
+        ``rho' + 2 z^2 rho''`` (scan, stripe, prior), and the residuals."""
         cs, _, cp, _ = mp.coefficients(x, derivatives=False)
-        rs, rp = mp.residuals(cs, cp)
-        rr = prob.prior_residuals(x)
+        res = (*mp.residuals(cs, cp), prob.prior_residuals(x))
         total, weights, curv = 0.0, [], []
-        for r in (rs, rp, rr):
+        for r in res:
             rho, w = _rho_and_weights(r / f_scale, loss)
             total += rho
             weights.append(w)
             curv.append(_curvature_weights(r / f_scale, w, loss))
-        Wr_s, Wr_p = weights[0] * rs, weights[1] * rp
-        b = mp.first_moments(Wr_s, Wr_p)
+        return 0.5 * f_scale**2 * total, weights, curv, res
+
+    def gradient_moments(res: tuple, weights: list) -> tuple[tuple, float]:
+        """The gradient moments ``b = sum W r h~`` (scan, stripe) and ``q = sum W r^2``."""
+        (rs, rp, rr), (ws, wp, wr) = res, weights
+        Wr_s, Wr_p = ws * rs, wp * rp
         # einsum, not BLAS: a threaded dot of ~1e5 entries stalls on a busy machine
         q = float(np.einsum("i,i->", Wr_s, rs) + np.einsum("i,i->", Wr_p, rp)
-                  + np.sum(weights[2] * rr * rr))
-        return 0.5 * f_scale**2 * total, weights, curv, b, q
+                  + np.sum(wr * rr * rr))
+        return mp.first_moments(Wr_s, Wr_p), q
 
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
@@ -356,24 +377,25 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         pred = abs(float(g @ step))
         return pred <= max(inner_tol * max(q, 1e-300), 2 * tol * max(cost, 1e-300))
 
-    cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2), b, q = robust_cost(x)
+    cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2), res = robust_cost(x)
+    b, q = gradient_moments(res, [Ws, Wp, Wr])
     nfev += 1
     for _ in range(max_outer):
         # Newton on the robust cost first (second-order weights); the IRLS step (a
         # majoriser: never increases the cost) when that does not decrease it
         xi, H = inner(x, b, q, mp.moments(Ws2, Wp2), Wr, Wr2)
-        cn, W2, C2, b2, q2 = robust_cost(xi)
+        cn, W2, C2, res = robust_cost(xi)
         nfev += 1
         if not (np.isfinite(cn) and cn <= cost):
             xi, H = inner(x, b, q, mp.moments(Ws, Wp), Wr, Wr)
-            cn, W2, C2, b2, q2 = robust_cost(xi)
+            cn, W2, C2, res = robust_cost(xi)
             nfev += 1
         if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
             status = -1 if status == 0 else status
             break
         done = cost - cn <= tol * max(cost, 1e-300)
-        x, cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2), b, q = xi, cn, W2, C2, b2, q2
-        if done or settled(x, cost, b, q, Wr, H):
+        x, cost, (Ws, Wp, Wr), (Ws2, Wp2, Wr2) = xi, cn, W2, C2
+        if done:
             status = 1
             break
         if near is not None and near.information is not None and cost >= near.cost:
@@ -383,6 +405,10 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
             if d2 <= 9.0 and abs((cost - near.cost) - 0.5 * d2) <= 0.25 * d2 + 1e-9 * cost:
                 status = 2
                 break
+        b, q = gradient_moments(res, [Ws, Wp, Wr])
+        if settled(x, cost, b, q, Wr, H):
+            status = 1
+            break
     return LMResult(x, cost, nfev, status, H)
 
 
