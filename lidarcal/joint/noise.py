@@ -28,15 +28,15 @@ class _Groups:
         self.n_groups = 2 * n_pos
         self.board_of_group = np.arange(self.n_groups) % 2
         self.row_board = np.asarray(board)
-        self.n = np.bincount(self.gid, minlength=self.n_groups).astype(float)
-        self.sc = _along(self.gid, np.asarray(coords, float), self.n, self.n_groups)
         # residuals come grouped (position by position, board 0 then 1): group sums of a
         # whole Jacobian are then one np.add.reduceat instead of a bincount per column
         self._sorted = bool(np.all(self.gid[1:] >= self.gid[:-1]))
         self._size = np.bincount(self.gid, minlength=self.n_groups)  # rows per group
+        self.n = self._size.astype(float)
         starts = np.searchsorted(self.gid, np.arange(self.n_groups))
         self._nonempty = np.flatnonzero(self.n > 0)
         self._starts = starts[self._nonempty]
+        self.sc = _along(self, np.asarray(coords, float))
         self.sigma = np.ones(2)
         self.var0 = np.zeros(2)
         self.var1 = np.zeros(2)
@@ -175,7 +175,7 @@ class _Groups:
         self.set(sig, v0, v1, vg[0], vg[1])
 
 
-def _along(gid: np.ndarray, coords: np.ndarray, n: np.ndarray, n_groups: int) -> np.ndarray:
+def _along(grp: _Groups, coords: np.ndarray) -> np.ndarray:
     """Centred coordinate of every point along its group's principal direction (the first
     right singular vector of the group's centred 2D coordinates; sign arbitrary); 0 in
     groups of fewer than 3 points.
@@ -183,18 +183,12 @@ def _along(gid: np.ndarray, coords: np.ndarray, n: np.ndarray, n_groups: int) ->
     All groups at once: the principal direction is the leading eigenvector of each
     group's 2 x 2 scatter matrix.
     """
-    sc = np.zeros(len(gid))
-    if len(gid) == 0:
-        return sc
-    nn = np.maximum(n, 1.0)
-    mean = np.stack([np.bincount(gid, coords[:, j], minlength=n_groups) / nn for j in range(2)], 1)
-    q = coords - mean[gid]
-    S = np.zeros((n_groups, 2, 2))
-    for i, j in ((0, 0), (0, 1), (1, 1)):
-        S[:, i, j] = np.bincount(gid, q[:, i] * q[:, j], minlength=n_groups)
-    S[:, 1, 0] = S[:, 0, 1]
-    _, V = np.linalg.eigh(S)
-    v = V[:, :, 1]  # eigenvalues ascending: the last is the principal direction
-    big = (n >= 3)[gid]
-    sc[big] = np.einsum("ij,ij->i", q[big], v[gid[big]])
-    return sc
+    if len(coords) == 0:
+        return np.zeros(0)
+    n = grp._size
+    mean = grp.group_sums(coords) / np.maximum(n, 1)[:, None]
+    q = coords - grp.spread(mean)
+    S = grp.group_sums(np.column_stack([q[:, 0] * q[:, 0], q[:, 0] * q[:, 1], q[:, 1] * q[:, 1]]))
+    _, V = np.linalg.eigh(np.stack([S[:, :2], S[:, 1:]], axis=1))
+    v = V[:, :, 1] * (n >= 3)[:, None]  # eigenvalues ascending: the last is the principal direction
+    return np.einsum("ij,ij->i", q, grp.spread(v))
