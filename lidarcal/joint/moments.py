@@ -285,10 +285,11 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         res = (*mp.residuals(cs, cp), prob.prior_residuals(x))
         total, weights, curv = 0.0, [], []
         for r in res:
-            rho, w = _rho_and_weights(r / f_scale, loss)
+            z = r / f_scale
+            rho, w = _rho_and_weights(z, loss)
             total += rho
             weights.append(w)
-            curv.append(_curvature_weights(r / f_scale, w, loss))
+            curv.append(_curvature_weights(z, w, loss))
         return 0.5 * f_scale**2 * total, weights, curv, res
 
     def gradient_moments(res: tuple, weights: list) -> tuple[tuple, float]:

@@ -51,8 +51,7 @@ class _Groups:
 
     def _counts(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per group: kept residuals ``n`` and ``|s|^2`` over them (weights ``w``)."""
-        S = self.group_sums(np.column_stack([w, w * self.sc**2]))
-        return S[:, 0], np.maximum(S[:, 1], 1e-300)
+        return self.group_sum(w), np.maximum(self.group_sum(w * self.sc**2), 1e-300)
 
     def set(self, sigma, var0, var1, var0_g=None, var1_g=None) -> None:
         """Noise components per board; ``var*_g`` optionally per group (robust weights)."""
@@ -80,13 +79,11 @@ class _Groups:
             w, n, ss = self.w, self.n, self.ss
         elif counts is not None:
             n, ss = counts
-        else:  # the counts with the sums, in one pass
-            wr = w * r
-            S = self.group_sums(np.column_stack([wr, wr * self.sc, w, w * self.sc**2]))
-            return S[:, 0] / np.maximum(S[:, 2], 1e-300), S[:, 1] / np.maximum(S[:, 3], 1e-300)
+        else:
+            n, ss = self._counts(w)
         wr = w * r
-        S = self.group_sums(np.column_stack([wr, wr * self.sc]))
-        return S[:, 0] / np.maximum(n, 1e-300), S[:, 1] / ss
+        return (self.group_sum(wr) / np.maximum(n, 1e-300),
+                self.group_sum(wr * self.sc) / ss)
 
     def whiten(self, r: np.ndarray) -> np.ndarray:
         """``V^-1/2 r`` over the kept residuals (dropped ones do not enter the moments)."""
@@ -125,6 +122,15 @@ class _Groups:
             out[:, j] = np.bincount(self.gid, A[:, j], minlength=self.n_groups)
         return out
 
+    def group_sum(self, v: np.ndarray) -> np.ndarray:
+        """Per-group sum of a vector ``v`` (M,) -> (G,) (:meth:`group_sums` of one column)."""
+        if not self._sorted:
+            return np.bincount(self.gid, v, minlength=self.n_groups)
+        out = np.zeros(self.n_groups)
+        if len(self._nonempty):
+            out[self._nonempty] = np.add.reduceat(v, self._starts)
+        return out
+
     def spread(self, v: np.ndarray) -> np.ndarray:
         """Per-group values (G, ...) onto their rows (M, ...): ``np.repeat`` of grouped rows (a
         copy of contiguous blocks), else a gather by ``gid``."""
@@ -132,16 +138,19 @@ class _Groups:
             return np.repeat(v, self._size, axis=0)
         return v[self.gid]
 
-    def estimate(self, r: np.ndarray, floor: float) -> None:
+    def estimate(self, r: np.ndarray, floor: float, components: bool = True) -> None:
         """Method-of-moments noise components from residuals ``r`` at a fit (see class doc).
 
         Residuals beyond ``CLIP_SIGMAS`` robust sigmas are left out. ``sigma``:
         1.4826 x median absolute within-group residual (group offset and tilt
         removed); ``var0 = mean(m0^2 - sigma^2 / n)``, ``var1 = mean(m1^2 -
         sigma^2 / |s|^2)`` over the board's groups, set only when significant
-        (``SIGNIFICANCE`` standard errors above zero), else 0.
+        (``SIGNIFICANCE`` standard errors above zero), else 0. Without ``components``:
+        ``sigma`` only (white noise, the components 0).
         """
         if len(r) == 0:
+            if not components:
+                self.set(self.sigma, [0, 0], [0, 0])
             return
         sig, v0, v1 = np.ones(2), np.zeros(2), np.zeros(2)
         w = (np.abs(r) <= CLIP_SIGMAS * _robust_sigma(r, floor)).astype(float)
@@ -152,6 +161,9 @@ class _Groups:
             if not sel.any():
                 continue
             sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
+        if not components:
+            self.set(sig, v0, v1)
+            return
         w = (np.abs(within) <= CLIP_SIGMAS * sig[self.row_board]).astype(float)
         n, ss = self._counts(w)
         a0, a1 = self.moments(r, w, (n, ss))
@@ -188,7 +200,8 @@ def _along(grp: _Groups, coords: np.ndarray) -> np.ndarray:
     n = grp._size
     mean = grp.group_sums(coords) / np.maximum(n, 1)[:, None]
     q = coords - grp.spread(mean)
-    S = grp.group_sums(np.column_stack([q[:, 0] * q[:, 0], q[:, 0] * q[:, 1], q[:, 1] * q[:, 1]]))
-    _, V = np.linalg.eigh(np.stack([S[:, :2], S[:, 1:]], axis=1))
+    qx, qy = q[:, 0], q[:, 1]
+    sxx, sxy, syy = grp.group_sum(qx * qx), grp.group_sum(qx * qy), grp.group_sum(qy * qy)
+    _, V = np.linalg.eigh(np.stack([np.stack([sxx, sxy], 1), np.stack([sxy, syy], 1)], 1))
     v = V[:, :, 1] * (n >= 3)[:, None]  # eigenvalues ascending: the last is the principal direction
     return np.einsum("ij,ij->i", q, grp.spread(v))

@@ -98,11 +98,9 @@ class _Problem:
         """Noise scales of every residual kind from the residuals at ``x`` (:meth:`_Groups.estimate`);
         without ``correlated`` the per-segment / per-stripe components are zero."""
         rs, rp, rc = self.blocks(x)
-        self.scan.estimate(rs, 1e-9 * max(float(np.abs(self.data.board_T).max()), 1.0))
-        self.stripe.estimate(rp, 1e-6)
-        if not correlated:
-            self.scan.set(self.scan.sigma, [0, 0], [0, 0])
-            self.stripe.set(self.stripe.sigma, [0, 0], [0, 0])
+        self.scan.estimate(rs, 1e-9 * max(float(np.abs(self.data.board_T).max()), 1.0),
+                           correlated)
+        self.stripe.estimate(rp, 1e-6, correlated)
         self.sigma_corner = _robust_sigma(rc, 1e-6)
 
     def reject(self, x: np.ndarray) -> None:
