@@ -6,6 +6,8 @@ import numpy as np
 
 from .params import _CHI1_MEDIAN, CLIP_SIGMAS, SIGNIFICANCE, _robust_sigma
 
+BLOCK_ROWS = 400  # groups this large on average are whitened group by group (cache-sized blocks)
+
 
 class _Groups:
     """Noise model of one residual kind: per-(position, board) groups with correlated errors.
@@ -102,7 +104,17 @@ class _Groups:
         wJ = J * self.w[:, None]
         inv = 1 / self.sig_g
         a0 = self.group_sums(wJ) * (self.g0 * inv / np.maximum(self.n, 1e-300))[:, None]
-        a1 = self.group_sums(wJ * self.sc[:, None]) * (self.g1 * inv / self.ss)[:, None]
+        np.multiply(wJ, self.sc[:, None], out=wJ)
+        a1 = self.group_sums(wJ) * (self.g1 * inv / self.ss)[:, None]
+        if self._sorted and len(J) >= BLOCK_ROWS * len(self._nonempty):
+            # large groups: one block of rows at a time (it stays in cache)
+            out = np.empty_like(J)
+            sc = self.sc
+            for g, a, b in zip(self._nonempty, self._starts, self._starts + self._size[self._nonempty]):
+                blk = np.multiply(J[a:b], inv[g], out=out[a:b])
+                blk -= a0[g]
+                blk -= sc[a:b, None] * a1[g]
+            return out
         out = J * self.spread(inv)[:, None]
         out -= self.spread(a0)
         out -= self.spread(a1) * self.sc[:, None]
