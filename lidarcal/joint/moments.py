@@ -30,7 +30,7 @@ import weakref
 
 import numpy as np
 
-from .noise import _Groups
+from .noise import BLOCK_ROWS, _Groups
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
 from .solver import (
@@ -209,19 +209,20 @@ class _MomentProblem:
 
     def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
-        return (np.einsum("mk,mk->m", self.hs, self.prob.scan.spread(cs)),
-                np.einsum("mk,mk->m", self.hp, self.prob.stripe.spread(cp)))
+        return (_rows_dot(self.hs, cs, self.prob.scan), _rows_dot(self.hp, cp, self.prob.stripe))
 
     def first_moments(self, vs: np.ndarray, vp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``sum v h~`` of every group (G, 7) and (G, 4): with ``v = W r`` the gradient moments
         ``Q c`` of the robust cost (one pass over the observations, no products)."""
         out = []
-        for h, v, cuts in ((self.hs, vs, self.cuts_s), (self.hp, vp, self.cuts_p)):
-            b = np.zeros((self.n_groups, h.shape[1]))
-            nonempty = np.flatnonzero(np.diff(cuts) > 0)
-            if len(nonempty):
-                b[nonempty] = np.add.reduceat(h * v[:, None], cuts[nonempty], axis=0)
-            out.append(b)
+        for h, v, grp in ((self.hs, vs, self.prob.scan), (self.hp, vp, self.prob.stripe)):
+            if _blocked(grp, h):
+                b = np.zeros((self.n_groups, h.shape[1]))
+                for g, i, j in _blocks(grp):
+                    np.dot(v[i:j], h[i:j], out=b[g])
+                out.append(b)
+            else:
+                out.append(grp.group_sums(h * v[:, None]))
         return out[0], out[1]
 
     def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -237,6 +238,26 @@ class _MomentProblem:
                 np.matmul(hw[cuts[g]:cuts[g + 1]].T, h[cuts[g]:cuts[g + 1]], out=Q[g])
             out.append(Q)
         return out[0], out[1]
+
+
+def _blocked(grp: _Groups, h: np.ndarray) -> bool:
+    """Whether the rows of ``h`` go group by group (:data:`lidarcal.joint.noise.BLOCK_ROWS`)."""
+    return grp._sorted and len(h) >= BLOCK_ROWS * max(len(grp._nonempty), 1)
+
+
+def _blocks(grp: _Groups):
+    """(group, first row, end row) of every non-empty group (rows grouped)."""
+    return zip(grp._nonempty, grp._starts, grp._starts + grp._size[grp._nonempty])
+
+
+def _rows_dot(h: np.ndarray, c: np.ndarray, grp: _Groups) -> np.ndarray:
+    """``h_i . c_g`` of every row ``i`` with its group's coefficients (M,)."""
+    if not _blocked(grp, h):
+        return np.einsum("mk,mk->m", h, grp.spread(c))
+    r = np.zeros(len(h))
+    for g, i, j in _blocks(grp):
+        np.dot(h[i:j], c[g], out=r[i:j])
+    return r
 
 
 def moments_usable(prob: _Problem, use_corners: bool) -> bool:
