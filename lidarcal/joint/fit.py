@@ -181,10 +181,12 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         held = tuple(int(j) for j in np.flatnonzero(z <= RANGING_SIGNIFICANCE))
         if held:
             rng0 = prob.base.ranging.copy()
-            x = x.copy()
-            for j in held:
+            cols = [len(x) - n_rng + j for j in held]
+            x = x + _conditional_step(sol.information, len(x), cols,
+                                      prior_arrays[0][list(held)] - rv[list(held)])
+            for j, c in zip(held, cols):
                 rng0[j] = prior_arrays[0][j]
-                x[len(x) - n_rng + j] = 0.0
+                x[c] = 0.0
             prob.base = replace(prob.base, ranging=rng0)
             prob.frozen = held
             sol = solve(prob, x)  # same noise model and kept residuals, terms held
@@ -250,6 +252,24 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             "ranging_rig_covariance": cov_all[N_RIG:, :N_RIG]}
     return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
                       jitter_deg, corrections, rmodel)
+
+
+def _conditional_step(H: np.ndarray | None, n: int, cols: list[int], delta: np.ndarray
+                      ) -> np.ndarray:
+    """Step of the other parameters that keeps the cost's quadratic model (information ``H``
+    at the optimum) at its minimum when parameters ``cols`` move by ``delta``:
+    ``-H_ff^-1 H_fc delta`` (the conditional mean of a Gaussian), as a full-length step
+    (zero at ``cols``) of the ``n`` parameters. A warm start for the solve with those terms
+    held; zero without ``H`` (of ``n`` parameters) or when ``H_ff`` is singular."""
+    step = np.zeros(n)
+    if H is None or H.shape != (n, n):
+        return step
+    free = np.setdiff1d(np.arange(n), cols)
+    try:
+        step[free] = -np.linalg.solve(H[np.ix_(free, free)], H[np.ix_(free, cols)] @ delta)
+    except np.linalg.LinAlgError:
+        return np.zeros(n)
+    return step if np.all(np.isfinite(step)) else np.zeros(n)
 
 
 def _plane_shift(data: JointData, plane_prior: PlanePrior | None, bR: np.ndarray,
