@@ -26,7 +26,7 @@ from .params import (
     _boards,
     _rig,
 )
-from .problem import _Problem, start_step
+from .problem import _Problem, _stripe_points, start_step
 from .solver import _covariance, _robust_cost, irls_lm
 
 if TYPE_CHECKING:
@@ -404,10 +404,9 @@ def scan_coverage(data: JointData, model) -> np.ndarray:
     nb = data.board_R[:, :, 2]
     line = np.cross(np.tile(nb, (n_pos, 1)), np.repeat(R[:, :, 2], 2, axis=0))  # group 2 i + b
     line /= np.maximum(np.linalg.norm(line, axis=1), 1e-12)[:, None]
-    P = ray = data.stripe_rays
-    if len(ray):
-        d = np.einsum("ij,ij->i", nb, data.board_T)[data.stripe_board]
-        P = ray * (d / np.einsum("ij,ij->i", ray, nb[data.stripe_board]))[:, None]
+    P = data.stripe_rays
+    if len(P):  # the centres on their boards (eq. 5), as the fit has them
+        P = _stripe_points(data, data.board_R, data.board_T)["P"]
     p, xy = data.scan_pos, data.scan_xy
     X = xy[:, :1] * R[p, :, 0] + xy[:, 1:] * R[p, :, 1] + T[p]
     spans = []

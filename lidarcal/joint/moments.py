@@ -73,7 +73,12 @@ def raw_observations(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
     return hs, hp
 
 
-def _observations(prob: _Problem) -> dict:
+def cached_observations(prob: _Problem) -> dict | None:
+    """:func:`_observations` when they are already at hand for ``prob``'s noise state, else None."""
+    return _observations(prob, build=False)
+
+
+def _observations(prob: _Problem, build: bool = True) -> dict | None:
     """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
     (module docstring), as ``{"hs": .., "hp": ..}``.
     They do not depend on the rig parameters: computed once per noise state and reused by
@@ -83,6 +88,8 @@ def _observations(prob: _Problem) -> dict:
     if hit is not None and all(a is b for a, b in zip(hit[0][:-1], state[:-1])) \
             and hit[0][-1] == state[-1]:
         return hit[1]
+    if not build:
+        return None
     hs, hp = raw_observations(prob)
     hs = _whitened(prob.scan, hs)
     hs *= prob.scan.w[:, None]
