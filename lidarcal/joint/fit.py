@@ -182,7 +182,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         if held:
             rng0 = prob.base.ranging.copy()
             cols = [len(x) - n_rng + j for j in held]
-            x = x + _conditional_step(sol.information, len(x), cols,
+            x = x + _conditional_step(getattr(sol, "information", None), len(x), cols,
                                       prior_arrays[0][list(held)] - rv[list(held)])
             for j, c in zip(held, cols):
                 rng0[j] = prior_arrays[0][j]
