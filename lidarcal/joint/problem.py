@@ -261,19 +261,25 @@ class _Problem:
         m = len(self.corner_residuals(*_boards(x, self.base)))
         Jc = np.zeros((m, 2 * N_BOARD))
         for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+            b = (i - N_RIG) // N_BOARD  # a board's parameters move its own corners only
+            rows = slice(b * m // 2, (b + 1) * m // 2)
             dx = np.zeros(len(x))
             dx[i] = _STEPS[i]
-            Jc[:, i - N_RIG] = (self.corner_residuals(*_boards(x + dx, self.base))
-                                - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
+            Jc[rows, i - N_RIG] = (self.corner_residuals(*_boards(x + dx, self.base), (b,))
+                                   - self.corner_residuals(*_boards(x - dx, self.base), (b,))
+                                   ) / (2 * _STEPS[i])
         return Jc
 
-    def corner_residuals(self, bR: np.ndarray, bT: np.ndarray) -> np.ndarray:
+    def corner_residuals(self, bR: np.ndarray, bT: np.ndarray, boards: tuple[int, ...] = (0, 1)
+                         ) -> np.ndarray:
+        """Reprojection residuals (px, x and y interleaved) of the corners of ``boards`` with
+        the board poses ``bR``, ``bT`` (eq. 1, ``cv2.projectPoints``)."""
         d = self.data
         if d.corners_px is None or d.object_points is None:
             return np.zeros(0)
         out = []
         K, dist = np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float)
-        for j in range(2):
+        for j in boards:
             rvec = cv2.Rodrigues(bR[j])[0]
             proj, _ = cv2.projectPoints(d.object_points.reshape(-1, 1, 3), rvec, bT[j], K, dist)
             out.append((proj.reshape(-1, 2) - d.corners_px[j]).ravel())
