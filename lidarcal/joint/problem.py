@@ -78,12 +78,15 @@ class _Problem:
         xr, _ = self.split(x)
         R, T = _poses(*_rig(xr, self.base), self.t)
         bR, bT = _boards(xr, self.base)
-        p, u = d.scan_pos, self.scan_u
-        dirs = R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:]
-        dark = np.zeros(len(p))
+        u, sp = self.scan_u, self.scan.spread  # per (position, board) -> per return
+        pos = np.repeat(np.arange(len(R)), 2)
+        dirs = sp(R[pos, :, 0]) * u[:, :1] + sp(R[pos, :, 1]) * u[:, 1:]
+        origin = sp(T[pos])
+        dark = np.zeros(len(u))
         for b in range(2):
             m = d.scan_board == b
-            dark[m] = dark_returns(T[p[m]], dirs[m], bR[b], bT[b], d.board_spec, d.black_parity[b])
+            dark[m] = dark_returns(origin[m], dirs[m], bR[b], bT[b], d.board_spec,
+                                   d.black_parity[b])
         self.dark = dark
 
     def prior_residuals(self, x: np.ndarray) -> np.ndarray:
