@@ -411,9 +411,9 @@ def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bo
 def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
     """d pixel / d point (S, 2, 3) of camera-frame points ``P`` through the lens model.
 
-    OpenCV's five-coefficient model: ``K2 J_d(x, y) [[1, 0, -x], [0, 1, -y]] / Z`` with
-    ``(x, y) = (X / Z, Y / Z)``, ``J_d`` the distortion's 2 x 2 Jacobian
-    (:func:`lidarcal.camera._distort_normalised`) and ``K2 = [[fx, skew], [0, fy]]``;
+    OpenCV's five-coefficient model as ``cv2.projectPoints`` has it (no skew):
+    ``diag(fx, fy) J_d(x, y) [[1, 0, -x], [0, 1, -y]] / Z`` with ``(x, y) = (X / Z, Y / Z)``
+    and ``J_d`` the distortion's 2 x 2 Jacobian (:func:`lidarcal.camera._distort_normalised`);
     other models: ``cv2.projectPoints``' Jacobian wrt the translation (columns 3-5, exactly
     that with a zero rotation)."""
     from ..camera import _distort_normalised
@@ -426,8 +426,8 @@ def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
     xy = P[:, :2] * iz[:, None]
     _, Jd = _distort_normalised(camera, xy)
     out = np.empty((len(P), 2, 3))
-    A = out[:, :, :2]  # d pixel / d (X, Y) at fixed Z: K2 J_d / Z
-    A[:, 0] = (K[0, 0] * Jd[:, 0] + K[0, 1] * Jd[:, 1]) * iz[:, None]
+    A = out[:, :, :2]  # d pixel / d (X, Y) at fixed Z: diag(fx, fy) J_d / Z
+    A[:, 0] = K[0, 0] * Jd[:, 0] * iz[:, None]
     A[:, 1] = K[1, 1] * Jd[:, 1] * iz[:, None]
     out[:, :, 2] = -(A[:, :, 0] * xy[:, :1] + A[:, :, 1] * xy[:, 1:])
     return out
