@@ -27,7 +27,7 @@ from .params import (
     _rig,
 )
 from .problem import _Problem, _stripe_points, start_step
-from .solver import _covariance, _robust_cost, irls_lm
+from .solver import _covariance, _inverse, _robust_cost, irls_lm
 
 if TYPE_CHECKING:
     from .planes_prior import PlanePrior
@@ -260,15 +260,17 @@ def _conditional_step(H: np.ndarray | None, n: int, cols: list[int], delta: np.n
     at the optimum) at its minimum when parameters ``cols`` move by ``delta``:
     ``-H_ff^-1 H_fc delta`` (the conditional mean of a Gaussian), as a full-length step
     (zero at ``cols``) of the ``n`` parameters. A warm start for the solve with those terms
-    held; zero without ``H`` (of ``n`` parameters) or when ``H_ff`` is singular."""
+    held. Zero without ``H`` (of ``n`` parameters) or when ``H_ff`` is rank-deficient
+    (:func:`lidarcal.joint.solver._inverse`): where the data leave a direction undetermined
+    the solve keeps it where it would have without the warm start."""
     step = np.zeros(n)
     if H is None or H.shape != (n, n):
         return step
     free = np.setdiff1d(np.arange(n), cols)
-    try:
-        step[free] = -np.linalg.solve(H[np.ix_(free, free)], H[np.ix_(free, cols)] @ delta)
-    except np.linalg.LinAlgError:
-        return np.zeros(n)
+    C, null = _inverse(H[np.ix_(free, free)])
+    if null.shape[1]:
+        return step
+    step[free] = -C @ (H[np.ix_(free, cols)] @ delta)
     return step if np.all(np.isfinite(step)) else np.zeros(n)
 
 
