@@ -160,3 +160,56 @@ def test_stripe_rays_from_section1_points_equal_undistortion():
     shifted = np.roll(pts, 1, axis=0)  # one row off: a sample reprojects elsewhere
     assert np.array_equal(_stripe_rays(d.camera, d.stripe_px, shifted),
                           pixel_rays(d.camera, d.stripe_px))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_stripe_pixel_jacobian_equals_opencv(seed):
+    """d pixel / d point of the stripe scale (lidarcal.joint.problem.pixel_jacobian) from the
+    camera's distortion Jacobian equals cv2.projectPoints' Jacobian wrt the translation, for
+    random cameras with all five distortion coefficients, over the image (a skew in K:
+    ignored by both, as cv2.projectPoints does)."""
+    import cv2
+
+    from lidarcal.io.dataset import CameraModel
+    from lidarcal.joint.problem import pixel_jacobian
+
+    rng = np.random.default_rng(seed)
+    K = np.array([[rng.uniform(800, 2000), rng.uniform(-2, 2), rng.uniform(600, 700)],
+                  [0.0, rng.uniform(800, 2000), rng.uniform(400, 500)], [0.0, 0.0, 1.0]])
+    dist = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-1e-3, 1e-3),
+                     rng.uniform(-1e-3, 1e-3), rng.uniform(-0.05, 0.05)])
+    cam = CameraModel(K, dist, (1280, 960))
+    z = rng.uniform(300, 1500, 200)
+    P = np.column_stack([rng.uniform(-0.5, 0.5, 200) * z, rng.uniform(-0.4, 0.4, 200) * z, z])
+    _, J = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+    J0 = J[:, 3:6].reshape(-1, 2, 3)
+    assert np.allclose(pixel_jacobian(cam, P), J0, rtol=1e-9, atol=1e-12 * np.abs(J0).max())
+
+
+def test_whitening_of_large_groups_equals_the_row_gather():
+    """The noise model's whitening (GLS, per-group offset and tilt) group by group (large
+    groups, rows grouped) equals the same on the rows in another order (gathered by group)
+    and the column-by-column whitening, with a mask and per-group components."""
+    from lidarcal.joint.noise import BLOCK_ROWS, _Groups
+
+    rng = np.random.default_rng(5)
+    n_pos, per = 3, 2 * BLOCK_ROWS
+    pos = np.repeat(np.arange(n_pos), 2 * per)
+    board = np.tile(np.repeat([0, 1], per), n_pos)
+    coords = rng.normal(size=(len(pos), 2)) * [50.0, 2.0]
+    J = rng.normal(size=(len(pos), 4))
+    keep = rng.random(len(pos)) > 0.05
+    perm = rng.permutation(len(pos))
+    var0_g = rng.uniform(0.1, 0.3, 2 * n_pos)  # per-group components
+    out = []
+    for idx in (np.arange(len(pos)), perm):
+        g = _Groups(pos[idx], board[idx], coords[idx], n_pos)
+        g.set_mask(keep[idx])
+        g.set([0.7, 1.3], [0.2, 0.05], [1e-4, 3e-4], var0_g, np.full(2 * n_pos, 2e-4))
+        assert g._sorted == (idx is not perm)
+        w = g.whiten_columns(J[idx])
+        cols = np.column_stack([g.whiten(J[idx][:, j]) for j in range(J.shape[1])])
+        assert np.allclose(w, cols, rtol=0, atol=1e-12)
+        out.append(np.empty_like(w))
+        out[-1][idx] = w
+    assert np.allclose(out[0], out[1], rtol=0, atol=1e-12)

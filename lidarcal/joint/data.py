@@ -118,27 +118,27 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
     if len(scans) != len(psi) or len(stripes) != len(psi):
         raise ValueError(f"Expected one scan and one stripe pair per position ({len(psi)}), got "
                          f"{len(scans)} and {len(stripes)}")
-    xy, sp, sb, cpx, cp, cb, pts = [], [], [], [], [], [], []
-    for i, (sc, st) in enumerate(zip(scans, stripes)):
-        for b in range(2):
-            p = np.asarray(sc[b], dtype=float).reshape(-1, 2)
-            p = p[np.all(np.isfinite(p), axis=1)]
-            xy.append(p)
-            sp.append(np.full(len(p), i))
-            sb.append(np.full(len(p), b))
-            c = np.asarray(st[b], dtype=float).reshape(-1, 2)
-            if stripe_points is not None:
-                pts.append(np.asarray(stripe_points[i][b], dtype=float).reshape(-1, 3))
-            cpx.append(c)
-            cp.append(np.full(len(c), i))
-            cb.append(np.full(len(c), b))
-    stripe_px = np.vstack(cpx)
-    rays = _stripe_rays(camera, stripe_px, np.vstack(pts) if pts else None)
+    n2 = 2 * len(psi)  # (position, board) groups, 2 i + b
+    scan = [np.asarray(sc[b], dtype=float).reshape(-1, 2) for sc in scans for b in range(2)]
+    cent = [np.asarray(st[b], dtype=float).reshape(-1, 2) for st in stripes for b in range(2)]
+    g_scan = np.repeat(np.arange(n2), [len(a) for a in scan])
+    g_cent = np.repeat(np.arange(n2), [len(a) for a in cent])
+    xy = np.concatenate(scan) if scan else np.zeros((0, 2))
+    keep = np.all(np.isfinite(xy), axis=1)
+    if not keep.all():
+        xy, g_scan = xy[keep], g_scan[keep]
+    stripe_px = np.concatenate(cent) if cent else np.zeros((0, 2))
+    pts = None
+    if stripe_points is not None and len(psi):
+        pts = np.concatenate([np.asarray(sp[b], dtype=float).reshape(-1, 3)
+                              for sp in stripe_points for b in range(2)])
+    rays = _stripe_rays(camera, stripe_px, pts)
     ok = np.all(np.isfinite(rays), axis=1)
-    cat = lambda v: np.concatenate(v).astype(int)
+    if not ok.all():
+        stripe_px, rays, g_cent = stripe_px[ok], rays[ok], g_cent[ok]
     return JointData(camera, psi, np.arange(len(psi)) if indices is None else np.asarray(indices),
-                     np.vstack(xy), cat(sp), cat(sb), stripe_px[ok], rays[ok], cat(cp)[ok],
-                     cat(cb)[ok], np.asarray(board_R, float), np.asarray(board_T, float),
+                     xy, g_scan // 2, g_scan % 2, stripe_px, rays, g_cent // 2, g_cent % 2,
+                     np.asarray(board_R, float), np.asarray(board_T, float),
                      None if corners_px is None else tuple(np.asarray(c, float) for c in corners_px),
                      None if object_points is None else np.asarray(object_points, float),
                      list(samples or []), board_spec,

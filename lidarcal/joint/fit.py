@@ -26,8 +26,8 @@ from .params import (
     _boards,
     _rig,
 )
-from .problem import _Problem, start_step
-from .solver import _covariance, _robust_cost, irls_lm
+from .problem import _Problem, _stripe_points, start_step
+from .solver import _covariance, _inverse, _robust_cost, irls_lm
 
 if TYPE_CHECKING:
     from .planes_prior import PlanePrior
@@ -181,10 +181,12 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         held = tuple(int(j) for j in np.flatnonzero(z <= RANGING_SIGNIFICANCE))
         if held:
             rng0 = prob.base.ranging.copy()
-            x = x.copy()
-            for j in held:
+            cols = [len(x) - n_rng + j for j in held]
+            x = x + _conditional_step(getattr(sol, "information", None), len(x), cols,
+                                      prior_arrays[0][list(held)] - rv[list(held)])
+            for j, c in zip(held, cols):
                 rng0[j] = prior_arrays[0][j]
-                x[len(x) - n_rng + j] = 0.0
+                x[c] = 0.0
             prob.base = replace(prob.base, ranging=rng0)
             prob.frozen = held
             sol = solve(prob, x)  # same noise model and kept residuals, terms held
@@ -250,6 +252,26 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             "ranging_rig_covariance": cov_all[N_RIG:, :N_RIG]}
     return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
                       jitter_deg, corrections, rmodel)
+
+
+def _conditional_step(H: np.ndarray | None, n: int, cols: list[int], delta: np.ndarray
+                      ) -> np.ndarray:
+    """Step of the other parameters that keeps the cost's quadratic model (information ``H``
+    at the optimum) at its minimum when parameters ``cols`` move by ``delta``:
+    ``-H_ff^-1 H_fc delta`` (the conditional mean of a Gaussian), as a full-length step
+    (zero at ``cols``) of the ``n`` parameters. A warm start for the solve with those terms
+    held. Zero without ``H`` (of ``n`` parameters) or when ``H_ff`` is rank-deficient
+    (:func:`lidarcal.joint.solver._inverse`): where the data leave a direction undetermined
+    the solve keeps it where it would have without the warm start."""
+    step = np.zeros(n)
+    if H is None or H.shape != (n, n):
+        return step
+    free = np.setdiff1d(np.arange(n), cols)
+    C, null = _inverse(H[np.ix_(free, free)])
+    if null.shape[1]:
+        return step
+    step[free] = -C @ (H[np.ix_(free, cols)] @ delta)
+    return step if np.all(np.isfinite(step)) else np.zeros(n)
 
 
 def _plane_shift(data: JointData, plane_prior: PlanePrior | None, bR: np.ndarray,
@@ -384,19 +406,21 @@ def scan_coverage(data: JointData, model) -> np.ndarray:
     nb = data.board_R[:, :, 2]
     line = np.cross(np.tile(nb, (n_pos, 1)), np.repeat(R[:, :, 2], 2, axis=0))  # group 2 i + b
     line /= np.maximum(np.linalg.norm(line, axis=1), 1e-12)[:, None]
-    P = ray = data.stripe_rays
-    if len(ray):
-        d = np.einsum("ij,ij->i", nb, data.board_T)[data.stripe_board]
-        P = ray * (d / np.einsum("ij,ij->i", ray, nb[data.stripe_board]))[:, None]
+    P = data.stripe_rays
+    if len(P):  # the centres on their boards (eq. 5), as the fit has them
+        P = _stripe_points(data, data.board_R, data.board_T)["P"]
     p, xy = data.scan_pos, data.scan_xy
     X = xy[:, :1] * R[p, :, 0] + xy[:, 1:] * R[p, :, 1] + T[p]
     spans = []
     for pts, pos, brd in ((P, data.stripe_pos, data.stripe_board), (X, p, data.scan_board)):
         g = 2 * np.asarray(pos) + np.asarray(brd)
-        order = np.argsort(g, kind="stable")
-        g = g[order]
-        proj = np.einsum("ij,ij->i", pts[order], line[g]) if len(g) else np.zeros(0)
         cnt = np.bincount(g, minlength=2 * n_pos)
+        if np.all(g[1:] >= g[:-1]):  # grouped as built: each group's line spread over its rows
+            proj = np.einsum("ij,ij->i", pts, np.repeat(line, cnt, axis=0))
+        else:
+            order = np.argsort(g, kind="stable")
+            g = g[order]
+            proj = np.einsum("ij,ij->i", pts[order], line[g]) if len(g) else np.zeros(0)
         span = np.zeros(2 * n_pos)
         ne = np.flatnonzero(cnt)
         if len(ne):

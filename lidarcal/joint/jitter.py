@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .moments import _MomentProblem, moments_usable
+from .moments import (
+    _MomentProblem,
+    _rows_dot,
+    cached_observations,
+    moments_usable,
+    raw_observations,
+)
 from .params import N_RIG
 from .problem import _Problem
 from .solver import _irls_weights
@@ -17,23 +23,28 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
     The residuals of position ``i`` depend on its angle ``t_i`` only. With robust
     weights ``w``: ``H_i = sum w J^2``, ``g_i = sum w J r`` (``J = dr/dt_i``); step
     ``-g_i / H_i`` (rad) and its variance ``s^2 / H_i`` (``s^2 >= 1`` the weighted residual
-    variance). Planes held (rows grouped): from the group moments, ``J`` of a group being
-    ``h~ . dc/dt`` (:meth:`lidarcal.joint.moments._MomentProblem.angle_coefficients`);
-    otherwise one central difference of all angles at once.
+    variance). Planes held (rows grouped): ``J`` of a row is ``h . dc/dt`` whitened like
+    its residual (:meth:`lidarcal.joint.moments._MomentProblem.angle_coefficients`; the
+    solver's whitened observations when at hand, else
+    :func:`lidarcal.joint.moments.raw_observations` whitened); otherwise one central
+    difference of all angles at once.
     """
     d = prob.data
     n = d.n_positions
+    pos = np.concatenate([d.scan_pos, d.stripe_pos])
     if len(x) == N_RIG + prob.n_ranging and moments_usable(prob, False):
-        mp = _MomentProblem(prob)
-        cs, dcs, cp, dcp = mp.angle_coefficients(x)
-        rs, rp = mp.residuals(cs, cp)
-        r0 = np.concatenate([rs, rp])
-        w = _irls_weights(r0 / f_scale, loss)
-        Qs, Qp = mp.moments(w[:len(rs)], w[len(rs):])
-        H = (np.einsum("gi,gij,gj->g", dcs, Qs, dcs)
-             + np.einsum("gi,gij,gj->g", dcp, Qp, dcp)).reshape(n, 2).sum(1)
-        g = (np.einsum("gi,gij,gj->g", dcs, Qs, cs)
-             + np.einsum("gi,gij,gj->g", dcp, Qp, cp)).reshape(n, 2).sum(1)
+        cs, dcs, cp, dcp = _MomentProblem(prob, observations=False).angle_coefficients(x)
+        obs = cached_observations(prob)
+        rows = []
+        if obs is not None:  # the solver's whitened observations
+            for grp, h, c, dc in ((prob.scan, obs["hs"], cs, dcs), (prob.stripe, obs["hp"], cp, dcp)):
+                rows += [_rows_dot(h, c, grp), _rows_dot(h, dc, grp)]
+        else:
+            for grp, h, c, dc in zip((prob.scan, prob.stripe), raw_observations(prob),
+                                     (cs, cp), (dcs, dcp)):
+                for v in (c, dc):  # residual and its derivative, whitened like the residuals
+                    rows.append(grp.whiten(_rows_dot(h, v, grp)) * grp.w)
+        r0, J = np.concatenate(rows[0::2]), np.concatenate(rows[1::2])
     else:
         t0 = prob.t
         h = 1e-5
@@ -43,13 +54,12 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
         prob.t = t0 - h
         rm = prob.normalised(x, False)
         prob.t = t0
-        pos = np.concatenate([d.scan_pos, d.stripe_pos])
         m = len(pos)  # the ranging prior's pseudo-residuals follow: they do not move with t
         r0, rp, rm = r0[:m], rp[:m], rm[:m]
         J = (rp - rm) / (2 * h)
-        w = _irls_weights(r0 / f_scale, loss)
-        H = np.bincount(pos, w * J * J, minlength=n)
-        g = np.bincount(pos, w * J * r0, minlength=n)
+    w = _irls_weights(r0 / f_scale, loss)
+    H = np.bincount(pos, w * J * J, minlength=n)
+    g = np.bincount(pos, w * J * r0, minlength=n)
     s2 = max(float(np.sum(w * r0 * r0)) / max(len(r0) - N_RIG - n, 1), 1.0)
     ok = H > 1e-300
     step = np.where(ok, -g / np.where(ok, H, 1.0), 0.0)

@@ -6,6 +6,8 @@ import numpy as np
 
 from .params import _CHI1_MEDIAN, CLIP_SIGMAS, SIGNIFICANCE, _robust_sigma
 
+BLOCK_ROWS = 400  # groups this large on average are whitened group by group (cache-sized blocks)
+
 
 class _Groups:
     """Noise model of one residual kind: per-(position, board) groups with correlated errors.
@@ -27,14 +29,16 @@ class _Groups:
         self.gid = pos * 2 + board
         self.n_groups = 2 * n_pos
         self.board_of_group = np.arange(self.n_groups) % 2
-        self.n = np.bincount(self.gid, minlength=self.n_groups).astype(float)
-        self.sc = _along(self.gid, np.asarray(coords, float), self.n, self.n_groups)
+        self.row_board = np.asarray(board)
         # residuals come grouped (position by position, board 0 then 1): group sums of a
         # whole Jacobian are then one np.add.reduceat instead of a bincount per column
         self._sorted = bool(np.all(self.gid[1:] >= self.gid[:-1]))
+        self._size = np.bincount(self.gid, minlength=self.n_groups)  # rows per group
+        self.n = self._size.astype(float)
         starts = np.searchsorted(self.gid, np.arange(self.n_groups))
         self._nonempty = np.flatnonzero(self.n > 0)
         self._starts = starts[self._nonempty]
+        self.sc = _along(self, np.asarray(coords, float))
         self.sigma = np.ones(2)
         self.var0 = np.zeros(2)
         self.var1 = np.zeros(2)
@@ -48,9 +52,8 @@ class _Groups:
         self._update()
 
     def _counts(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n = np.bincount(self.gid, w, minlength=self.n_groups)
-        ss = np.maximum(np.bincount(self.gid, w * self.sc**2, minlength=self.n_groups), 1e-300)
-        return n, ss
+        """Per group: kept residuals ``n`` and ``|s|^2`` over them (weights ``w``)."""
+        return self.group_sum(w), np.maximum(self.group_sum(w * self.sc**2), 1e-300)
 
     def set(self, sigma, var0, var1, var0_g=None, var1_g=None) -> None:
         """Noise components per board; ``var*_g`` optionally per group (robust weights)."""
@@ -76,62 +79,104 @@ class _Groups:
         (or weights ``w``; ``counts``: their :meth:`_counts`, when known)."""
         if w is None:
             w, n, ss = self.w, self.n, self.ss
+        elif counts is not None:
+            n, ss = counts
         else:
-            n, ss = self._counts(w) if counts is None else counts
-        m0 = np.bincount(self.gid, w * r, minlength=self.n_groups) / np.maximum(n, 1e-300)
-        m1 = np.bincount(self.gid, w * r * self.sc, minlength=self.n_groups) / ss
-        return m0, m1
+            n, ss = self._counts(w)
+        wr = w * r
+        return (self.group_sum(wr) / np.maximum(n, 1e-300),
+                self.group_sum(wr * self.sc) / ss)
 
     def whiten(self, r: np.ndarray) -> np.ndarray:
         """``V^-1/2 r`` over the kept residuals (dropped ones do not enter the moments)."""
         if len(r) == 0:
             return r
         m0, m1 = self.moments(r)
-        g = self.gid
-        return (r - self.g0[g] * m0[g] - self.g1[g] * m1[g] * self.sc) / self.sig_g[g]
+        inv = 1 / self.sig_g
+        return ((r * self.spread(inv) - self.spread(self.g0 * m0 * inv))
+                - self.spread(self.g1 * m1 * inv) * self.sc)
 
     def whiten_columns(self, J: np.ndarray) -> np.ndarray:
-        """:meth:`whiten` applied to every column of a Jacobian."""
+        """:meth:`whiten` applied to every column of a Jacobian (the group terms spread back
+        over their rows, :meth:`spread`)."""
         if J.shape[0] == 0:
             return J
-        if not self._sorted:
-            return np.column_stack([self.whiten(J[:, j]) for j in range(J.shape[1])])
         wJ = J * self.w[:, None]
-        m0 = self._group_sums(wJ) / np.maximum(self.n, 1e-300)[:, None]
-        m1 = self._group_sums(wJ * self.sc[:, None]) / self.ss[:, None]
-        g = self.gid
-        return ((J - self.g0[g][:, None] * m0[g] - (self.g1[g] * self.sc)[:, None] * m1[g])
-                / self.sig_g[g][:, None])
-
-    def _group_sums(self, A: np.ndarray) -> np.ndarray:
-        """Per-group column sums of ``A`` (rows grouped by ``gid``, sorted)."""
-        out = np.zeros((self.n_groups, A.shape[1]))
-        if len(self._nonempty):
-            out[self._nonempty] = np.add.reduceat(A, self._starts, axis=0)
+        inv = 1 / self.sig_g
+        a0 = self.group_sums(wJ) * (self.g0 * inv / np.maximum(self.n, 1e-300))[:, None]
+        np.multiply(wJ, self.sc[:, None], out=wJ)
+        a1 = self.group_sums(wJ) * (self.g1 * inv / self.ss)[:, None]
+        if self._sorted and len(J) >= BLOCK_ROWS * len(self._nonempty):
+            # large groups: one block of rows at a time (it stays in cache)
+            out = np.empty_like(J)
+            sc = self.sc
+            for g, a, b in zip(self._nonempty, self._starts, self._starts + self._size[self._nonempty]):
+                blk = np.multiply(J[a:b], inv[g], out=out[a:b])
+                blk -= a0[g]
+                blk -= sc[a:b, None] * a1[g]
+            return out
+        out = J * self.spread(inv)[:, None]
+        out -= self.spread(a0)
+        out -= self.spread(a1) * self.sc[:, None]
         return out
 
-    def estimate(self, r: np.ndarray, floor: float) -> None:
+    def group_sums(self, A: np.ndarray) -> np.ndarray:
+        """Per-group column sums of ``A`` (M, k) -> (G, k): one ``np.add.reduceat`` when the
+        rows are grouped (position by position, board 0 then 1, as built), else a bincount
+        per column."""
+        out = np.zeros((self.n_groups, A.shape[1]))
+        if not len(self._nonempty):
+            return out
+        if self._sorted:
+            out[self._nonempty] = np.add.reduceat(A, self._starts, axis=0)
+            return out
+        for j in range(A.shape[1]):
+            out[:, j] = np.bincount(self.gid, A[:, j], minlength=self.n_groups)
+        return out
+
+    def group_sum(self, v: np.ndarray) -> np.ndarray:
+        """Per-group sum of a vector ``v`` (M,) -> (G,) (:meth:`group_sums` of one column)."""
+        if not self._sorted:
+            return np.bincount(self.gid, v, minlength=self.n_groups)
+        out = np.zeros(self.n_groups)
+        if len(self._nonempty):
+            out[self._nonempty] = np.add.reduceat(v, self._starts)
+        return out
+
+    def spread(self, v: np.ndarray) -> np.ndarray:
+        """Per-group values (G, ...) onto their rows (M, ...): ``np.repeat`` of grouped rows (a
+        copy of contiguous blocks), else a gather by ``gid``."""
+        if self._sorted:
+            return np.repeat(v, self._size, axis=0)
+        return v[self.gid]
+
+    def estimate(self, r: np.ndarray, floor: float, components: bool = True) -> None:
         """Method-of-moments noise components from residuals ``r`` at a fit (see class doc).
 
         Residuals beyond ``CLIP_SIGMAS`` robust sigmas are left out. ``sigma``:
         1.4826 x median absolute within-group residual (group offset and tilt
         removed); ``var0 = mean(m0^2 - sigma^2 / n)``, ``var1 = mean(m1^2 -
         sigma^2 / |s|^2)`` over the board's groups, set only when significant
-        (``SIGNIFICANCE`` standard errors above zero), else 0.
+        (``SIGNIFICANCE`` standard errors above zero), else 0. Without ``components``:
+        ``sigma`` only (white noise, the components 0).
         """
         if len(r) == 0:
+            if not components:
+                self.set(self.sigma, [0, 0], [0, 0])
             return
         sig, v0, v1 = np.ones(2), np.zeros(2), np.zeros(2)
-        g = self.gid
         w = (np.abs(r) <= CLIP_SIGMAS * _robust_sigma(r, floor)).astype(float)
         m0, m1 = self.moments(r, w)
-        within = r - m0[g] - m1[g] * self.sc
+        within = r - self.spread(m0) - self.spread(m1) * self.sc
         for b in range(2):
-            sel = self.board_of_group[g] == b
+            sel = self.row_board == b
             if not sel.any():
                 continue
             sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
-        w = (np.abs(within) <= CLIP_SIGMAS * sig[self.board_of_group[g]]).astype(float)
+        if not components:
+            self.set(sig, v0, v1)
+            return
+        w = (np.abs(within) <= CLIP_SIGMAS * sig[self.row_board]).astype(float)
         n, ss = self._counts(w)
         a0, a1 = self.moments(r, w, (n, ss))
         vg = [np.zeros(self.n_groups), np.zeros(self.n_groups)]
@@ -154,7 +199,7 @@ class _Groups:
         self.set(sig, v0, v1, vg[0], vg[1])
 
 
-def _along(gid: np.ndarray, coords: np.ndarray, n: np.ndarray, n_groups: int) -> np.ndarray:
+def _along(grp: _Groups, coords: np.ndarray) -> np.ndarray:
     """Centred coordinate of every point along its group's principal direction (the first
     right singular vector of the group's centred 2D coordinates; sign arbitrary); 0 in
     groups of fewer than 3 points.
@@ -162,18 +207,13 @@ def _along(gid: np.ndarray, coords: np.ndarray, n: np.ndarray, n_groups: int) ->
     All groups at once: the principal direction is the leading eigenvector of each
     group's 2 x 2 scatter matrix.
     """
-    sc = np.zeros(len(gid))
-    if len(gid) == 0:
-        return sc
-    nn = np.maximum(n, 1.0)
-    mean = np.stack([np.bincount(gid, coords[:, j], minlength=n_groups) / nn for j in range(2)], 1)
-    q = coords - mean[gid]
-    S = np.zeros((n_groups, 2, 2))
-    for i, j in ((0, 0), (0, 1), (1, 1)):
-        S[:, i, j] = np.bincount(gid, q[:, i] * q[:, j], minlength=n_groups)
-    S[:, 1, 0] = S[:, 0, 1]
-    _, V = np.linalg.eigh(S)
-    v = V[:, :, 1]  # eigenvalues ascending: the last is the principal direction
-    big = (n >= 3)[gid]
-    sc[big] = np.einsum("ij,ij->i", q[big], v[gid[big]])
-    return sc
+    if len(coords) == 0:
+        return np.zeros(0)
+    n = grp._size
+    mean = grp.group_sums(coords) / np.maximum(n, 1)[:, None]
+    q = coords - grp.spread(mean)
+    qx, qy = q[:, 0], q[:, 1]
+    sxx, sxy, syy = grp.group_sum(qx * qx), grp.group_sum(qx * qy), grp.group_sum(qy * qy)
+    _, V = np.linalg.eigh(np.stack([np.stack([sxx, sxy], 1), np.stack([sxy, syy], 1)], 1))
+    v = V[:, :, 1] * (n >= 3)[:, None]  # eigenvalues ascending: the last is the principal direction
+    return np.einsum("ij,ij->i", q, grp.spread(v))

@@ -87,4 +87,4 @@ def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 def _robust_sigma(r: np.ndarray, floor: float) -> float:
     if len(r) == 0:
         return 1.0
-    return float(max(MAD_TO_SIGMA * np.median(np.abs(r)), floor))
+    return float(max(MAD_TO_SIGMA * np.median(np.abs(r), overwrite_input=True), floor))

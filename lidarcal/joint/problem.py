@@ -78,12 +78,15 @@ class _Problem:
         xr, _ = self.split(x)
         R, T = _poses(*_rig(xr, self.base), self.t)
         bR, bT = _boards(xr, self.base)
-        p, u = d.scan_pos, self.scan_u
-        dirs = R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:]
-        dark = np.zeros(len(p))
+        u, sp = self.scan_u, self.scan.spread  # per (position, board) -> per return
+        pos = np.repeat(np.arange(len(R)), 2)
+        dirs = sp(R[pos, :, 0]) * u[:, :1] + sp(R[pos, :, 1]) * u[:, 1:]
+        origin = sp(T[pos])
+        dark = np.zeros(len(u))
         for b in range(2):
             m = d.scan_board == b
-            dark[m] = dark_returns(T[p[m]], dirs[m], bR[b], bT[b], d.board_spec, d.black_parity[b])
+            dark[m] = dark_returns(origin[m], dirs[m], bR[b], bT[b], d.board_spec,
+                                   d.black_parity[b])
         self.dark = dark
 
     def prior_residuals(self, x: np.ndarray) -> np.ndarray:
@@ -98,11 +101,9 @@ class _Problem:
         """Noise scales of every residual kind from the residuals at ``x`` (:meth:`_Groups.estimate`);
         without ``correlated`` the per-segment / per-stripe components are zero."""
         rs, rp, rc = self.blocks(x)
-        self.scan.estimate(rs, 1e-9 * max(float(np.abs(self.data.board_T).max()), 1.0))
-        self.stripe.estimate(rp, 1e-6)
-        if not correlated:
-            self.scan.set(self.scan.sigma, [0, 0], [0, 0])
-            self.stripe.set(self.stripe.sigma, [0, 0], [0, 0])
+        self.scan.estimate(rs, 1e-9 * max(float(np.abs(self.data.board_T).max()), 1.0),
+                           correlated)
+        self.stripe.estimate(rp, 1e-6, correlated)
         self.sigma_corner = _robust_sigma(rc, 1e-6)
 
     def reject(self, x: np.ndarray) -> None:
@@ -135,17 +136,22 @@ class _Problem:
         R, T = _poses(k, a, R_ref, T_ref, self.t)
         n = bR[:, :, 2]
         dd = np.einsum("ij,ij->i", n, bT)
+        # per (position i, board b), group 2 i + b: the board's plane in the LiDAR frame
+        pos, brd = np.repeat(np.arange(len(R)), 2), np.tile([0, 1], len(R))
+        nR = np.einsum("gi,gij->gj", n[brd], R[pos])  # n . R_x, n . R_y, n . R_z
         # scan points (ranges corrected by the ranging model) in the camera frame, eq. (28),
-        # against their board's plane, eq. (3)
-        p, b = d.scan_pos, d.scan_board
+        # against their board's plane, eq. (3): x (n . R_x) + y (n . R_y) + n . T - d
         xy = self.scan_xy(rv)
-        X = R[p, :, 0] * xy[:, :1] + R[p, :, 1] * xy[:, 1:] + T[p]
-        r_scan = np.einsum("ij,ij->i", X, n[b]) - dd[b]
-        # stripe centres back-projected onto their board (eq. 5), against the laser plane
-        p = d.stripe_pos
+        sp = self.scan.spread
+        r_scan = (xy[:, 0] * sp(nR[:, 0]) + xy[:, 1] * sp(nR[:, 1])
+                  + sp(np.einsum("gi,gi->g", n[brd], T[pos]) - dd[brd]))
+        # stripe centres back-projected onto their board (eq. 5), against the laser plane:
+        # (P - T) . z
         P = _stripe_points(d, bR, bT, cache=not np.any(x[N_RIG:]))["P"]
-        z = R[p, :, 2]
-        r_stripe = np.einsum("ij,ij->i", P - T[p], z) * self.stripe_scale(P)
+        z = R[:, :, 2][pos]
+        sp = self.stripe.spread
+        r_stripe = ((np.einsum("ij,ij->i", P, sp(z)) - sp(np.einsum("gi,gi->g", T[pos], z)))
+                    * self.stripe_scale(P))
         r_corner = self.corner_residuals(bR, bT) if corners else np.zeros(0)
         self._blocks_memo = (key, (r_scan, r_stripe))
         return r_scan, r_stripe, r_corner
@@ -258,19 +264,25 @@ class _Problem:
         m = len(self.corner_residuals(*_boards(x, self.base)))
         Jc = np.zeros((m, 2 * N_BOARD))
         for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+            b = (i - N_RIG) // N_BOARD  # a board's parameters move its own corners only
+            rows = slice(b * m // 2, (b + 1) * m // 2)
             dx = np.zeros(len(x))
             dx[i] = _STEPS[i]
-            Jc[:, i - N_RIG] = (self.corner_residuals(*_boards(x + dx, self.base))
-                                - self.corner_residuals(*_boards(x - dx, self.base))) / (2 * _STEPS[i])
+            Jc[rows, i - N_RIG] = (self.corner_residuals(*_boards(x + dx, self.base), (b,))
+                                   - self.corner_residuals(*_boards(x - dx, self.base), (b,))
+                                   ) / (2 * _STEPS[i])
         return Jc
 
-    def corner_residuals(self, bR: np.ndarray, bT: np.ndarray) -> np.ndarray:
+    def corner_residuals(self, bR: np.ndarray, bT: np.ndarray, boards: tuple[int, ...] = (0, 1)
+                         ) -> np.ndarray:
+        """Reprojection residuals (px, x and y interleaved) of the corners of ``boards`` with
+        the board poses ``bR``, ``bT`` (eq. 1, ``cv2.projectPoints``)."""
         d = self.data
         if d.corners_px is None or d.object_points is None:
             return np.zeros(0)
         out = []
         K, dist = np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float)
-        for j in range(2):
+        for j in boards:
             rvec = cv2.Rodrigues(bR[j])[0]
             proj, _ = cv2.projectPoints(d.object_points.reshape(-1, 1, 3), rvec, bT[j], K, dist)
             out.append((proj.reshape(-1, 2) - d.corners_px[j]).ravel())
@@ -346,13 +358,13 @@ class _Problem:
         zL = R[np.repeat(np.arange(len(self.t)), 2), :, 2]
         line = unit(np.cross(n, zL))  # stripe direction on the board
         u = unit(np.cross(n, line))  # in the board, perpendicular to the stripe
-        g = self.stripe.gid
+        spread = self.stripe.spread  # per (position, board) -> per centre
         Jt = ent["Jt"]
-        pu = np.einsum("mij,mj->mi", Jt, u[g])
-        pl = unit(np.einsum("mij,mj->mi", Jt, line[g]))
+        pu = np.einsum("mij,mj->mi", Jt, spread(u))
+        pl = unit(np.einsum("mij,mj->mi", Jt, spread(line)))
         perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
-        du = np.abs(np.einsum("ij,ij->i", zL, u))[g]  # mm of laser offset per mm along u
-        self.scale_px = perp / np.maximum(du, 1e-9)
+        du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
+        self.scale_px = perp / spread(np.maximum(du, 1e-9))
         self.scale_depth = ent["P"][:, 2].copy()  # the depths it holds at (stripe_scale)
 
 
@@ -392,13 +404,33 @@ def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bo
         dd = np.einsum("ij,ij->i", n, bT)
         ent = per[key] = {"P": ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]}
     if jacobian and "Jt" not in ent:
-        # d pixel / d point through the lens model: cv2.projectPoints' Jacobian wrt the
-        # translation (columns 3-5) is exactly that with a zero rotation
-        _, Jt = cv2.projectPoints(ent["P"].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                  np.asarray(data.camera.K, float),
-                                  np.asarray(data.camera.dist, float))
-        ent["Jt"] = Jt[:, 3:6].reshape(-1, 2, 3)
+        ent["Jt"] = pixel_jacobian(data.camera, ent["P"])
     return ent
+
+
+def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
+    """d pixel / d point (S, 2, 3) of camera-frame points ``P`` through the lens model.
+
+    OpenCV's five-coefficient model as ``cv2.projectPoints`` has it (no skew):
+    ``diag(fx, fy) J_d(x, y) [[1, 0, -x], [0, 1, -y]] / Z`` with ``(x, y) = (X / Z, Y / Z)``
+    and ``J_d`` the distortion's 2 x 2 Jacobian (:func:`lidarcal.camera._distort_normalised`);
+    other models: ``cv2.projectPoints``' Jacobian wrt the translation (columns 3-5, exactly
+    that with a zero rotation)."""
+    from ..camera import _distort_normalised
+
+    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float).ravel()
+    if len(dist) != 5:
+        _, Jt = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+        return Jt[:, 3:6].reshape(-1, 2, 3)
+    iz = 1 / P[:, 2]
+    xy = P[:, :2] * iz[:, None]
+    _, Jd = _distort_normalised(camera, xy)
+    out = np.empty((len(P), 2, 3))
+    A = out[:, :, :2]  # d pixel / d (X, Y) at fixed Z: diag(fx, fy) J_d / Z
+    A[:, 0] = K[0, 0] * Jd[:, 0] * iz[:, None]
+    A[:, 1] = K[1, 1] * Jd[:, 1] * iz[:, None]
+    out[:, :, 2] = -(A[:, :, 0] * xy[:, :1] + A[:, :, 1] * xy[:, 1:])
+    return out
 
 
 def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:

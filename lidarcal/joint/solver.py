@@ -110,8 +110,11 @@ def _rho(z: np.ndarray, loss: str) -> np.ndarray:
 def _rho_and_weights(z: np.ndarray, loss: str) -> tuple[float, np.ndarray]:
     """``sum rho`` and the IRLS weights ``rho'`` of normalised residuals ``z`` in one go."""
     if loss == "soft_l1":
-        t = np.sqrt(1 + z * z)
-        return 2 * float(np.sum(t)) - 2 * len(z), 1 / t
+        t = z * z
+        t += 1
+        np.sqrt(t, out=t)
+        total = 2 * float(np.sum(t)) - 2 * len(z)
+        return total, np.reciprocal(t, out=t)
     return float(np.sum(_rho(z, loss))), _irls_weights(z, loss)
 
 
@@ -119,11 +122,11 @@ def _curvature_weights(z: np.ndarray, w: np.ndarray, loss: str) -> np.ndarray:
     """``rho'(s) + 2 s rho''(s)`` at ``s = z^2`` (``w = rho'``): the second derivative of the
     robust cost along a residual (Triggs et al. 2000, "Bundle adjustment", section 4.3),
     floored at 0 (where the loss bends down, Gauss-Newton takes no curvature)."""
+    if loss == "soft_l1":
+        return w * w * w  # (1 + s)^(-3/2)
     s = z * z
     if loss == "linear":
         return np.ones_like(s)
-    if loss == "soft_l1":
-        return w ** 3  # (1 + s)^(-3/2)
     if loss == "huber":
         return (s <= 1).astype(float)
     if loss == "cauchy":
