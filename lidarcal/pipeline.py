@@ -18,7 +18,7 @@ import hashlib
 import multiprocessing
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -88,6 +88,8 @@ class CalibrationResult:
     method: str
     warnings: list[str] = field(default_factory=list)
     joint_model: object | None = None
+    # dataset_hash(dataset), being computed in a thread while the pose functions are fitted
+    dataset_sha256: Future | None = field(default=None, repr=False, compare=False)
 
     @property
     def models(self) -> dict[str, object]:
@@ -366,6 +368,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
         jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
         outcomes = [solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
     results, failed = _apply_skip_policy(ds, todo, outcomes, strict)
+    sha256 = _hash_in_background(ds)
     skipped += [(i, str(e)) for i, e in failed]
     warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]
     psi = np.array([r.psi_deg for r in results])
@@ -378,7 +381,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     warnings += _setup_warnings(psi, results)
     warnings += list(intr.warnings) if intr is not None else []
     res = CalibrationResult(ds, camera, intr, boards, results, skipped, paper, rigid, method,
-                            warnings)
+                            warnings, dataset_sha256=sha256)
     if method == "joint":
         from .joint import fit_joint
 
@@ -487,9 +490,20 @@ def dataset_hash(ds: Dataset) -> str:
     return h.hexdigest()
 
 
-def _traced_hash(ds: Dataset) -> str:
+def _hash_in_background(ds: Dataset) -> Future:
+    """:func:`dataset_hash` in a thread of its own: file reads and SHA-256 (OpenSSL) release
+    the GIL, so it runs on the core the serial pose-function fits leave idle; its result
+    (or its error) is taken by :func:`calibration_dict`. The thread ends by itself."""
+    ex = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lidarcal-hash")
+    try:
+        return ex.submit(dataset_hash, ds)
+    finally:
+        ex.shutdown(wait=False)
+
+
+def _dataset_sha256(res: CalibrationResult) -> str:
     mark("hash-start")
-    out = dataset_hash(ds)
+    out = dataset_hash(res.dataset) if res.dataset_sha256 is None else res.dataset_sha256.result()
     mark("hash")
     return out
 
@@ -543,7 +557,7 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
                    for b in res.boards],
         "skipped": [{"index": i, "reason": r} for i, r in res.skipped],
         "warnings": list(res.warnings),
-        "provenance": {"lidarcal_version": __version__, "dataset_sha256": _traced_hash(ds),
+        "provenance": {"lidarcal_version": __version__, "dataset_sha256": _dataset_sha256(res),
                        "command": command},
     })
     return out

@@ -18,7 +18,7 @@ from conftest import bundled_dataset
 
 from lidarcal.cli import main
 from lidarcal.io.dataset import ImagePrefetch, load_dataset
-from lidarcal.pipeline import calibrate
+from lidarcal.pipeline import calibrate, dataset_hash
 
 
 def _samples(res) -> list[tuple]:
@@ -77,6 +77,9 @@ def test_the_command_process_writes_what_main_writes_in_process_and_traces_it(tm
     assert p.returncode == 0, p.stderr
     assert _without_command(tmp_path / "b" / "calibration.json") == \
         _without_command(tmp_path / "a" / "calibration.json")
+    # the hash computed in a thread while the pose functions are fitted is the dataset's
+    cal = json.loads((tmp_path / "b" / "calibration.json").read_text())
+    assert cal["provenance"]["dataset_sha256"] == dataset_hash(load_dataset(ds))
     marks = [line.split() for line in p.stderr.splitlines() if line.startswith("lidarcal-trace ")]
     assert all(line.startswith(("lidarcal-trace ", "warning: ")) for line in p.stderr.splitlines())
     pids = {m[2] for m in marks}
