@@ -15,6 +15,8 @@ import traceback
 from contextlib import contextmanager
 from pathlib import Path
 
+from .trace import mark
+
 
 def _numpy_one_blas_thread():
     """Import numpy with OpenBLAS on one thread in this process (its worker processes are
@@ -38,8 +40,11 @@ def _numpy_one_blas_thread():
 
 
 np = _numpy_one_blas_thread()
+mark("numpy")
 
 from .io.dataset import DatasetError
+
+mark("cli")
 
 
 def _pattern(text: str) -> tuple[int, int]:
@@ -321,6 +326,30 @@ def _cmd_laser_plane(a: argparse.Namespace) -> int:
     return 0
 
 
+def _reuse_freed_memory() -> None:
+    """Let glibc's malloc keep and reuse freed memory in this process (``mallopt(3)``).
+
+    By default every block above a dynamic threshold (128 kB, raised as blocks are freed)
+    is mapped from the kernel when allocated and unmapped when freed, and the top of the
+    heap is handed back, so each image-sized temporary of the board search (4-32 MB)
+    touches fresh pages: ~50,000 page faults and ~0.1 s of kernel CPU in ``calibrate``,
+    measured on the bundled dataset. With a fixed mapping threshold of 32 MB (glibc's
+    maximum) and a heap trimmed only past 256 MB, the freed blocks are reused instead.
+    Only how memory is recycled changes (not what is computed); the peak memory is kept
+    until the process exits. No effect outside glibc (Linux).
+    """
+    try:
+        os.confstr("CS_GNU_LIBC_VERSION")
+    except (ValueError, OSError, AttributeError):
+        return
+    import ctypes
+
+    libc = ctypes.CDLL(None)
+    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
+    libc.mallopt(m_trim_threshold, 256 << 20)
+    libc.mallopt(m_mmap_threshold, 32 << 20)
+
+
 @contextmanager
 def _imports_without_gc():
     """Import with the cyclic garbage collector paused, then freeze what was imported.
@@ -345,6 +374,7 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     from .io.dataset import ImagePrefetch, load_dataset
 
     ds = load_dataset(a.dataset)
+    mark("dataset")
     skip = set(a.skip)
     # decode the stripe images in a background thread while the heavier modules import;
     # leaving the block (result or error) stops and joins it before anything is printed
@@ -352,13 +382,15 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
                        laser_colour=ds.lidar.laser_colour) as images:
         with _imports_without_gc():
             from .pipeline import calibrate, write_calibration
-
+        mark("imports")
         res = calibrate(ds, skip=a.skip, strict=a.strict,
                         progress=not a.no_progress and sys.stderr.isatty(), method=a.method,
                         images=images, fit_planes=a.fit_planes)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
+    mark("calibrated")
     path = write_calibration(res, a.out, command=" ".join(["lidarcal", *sys.argv[1:]]))
+    mark("written")
     print(res.summary())
     print(f"wrote {path}")
     return 0
@@ -484,6 +516,9 @@ COMMANDS = {
 def main(argv: list[str] | None = None) -> int:
     """The command line ``argv`` (None: this process's own, ``sys.argv[1:]``); exit status."""
     args = build_parser().parse_args(argv)
+    mark("args")
+    if argv is None and args.command == "calibrate":  # this process is the command
+        _reuse_freed_memory()
     frozen = gc.get_freeze_count()
     try:
         return COMMANDS[args.command](args)
@@ -511,6 +546,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if argv is not None and not frozen:  # called in-process: the collector as it was
             gc.unfreeze()
+        mark("main-end")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ import hashlib
 import multiprocessing
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +52,7 @@ from .stripe import (
     camera_lines,
     estimate_reflectance_ratio,
 )
+from .trace import mark
 from .turntable import angle_scale, fit_paper, fit_rigid
 
 if TYPE_CHECKING:
@@ -87,6 +88,8 @@ class CalibrationResult:
     method: str
     warnings: list[str] = field(default_factory=list)
     joint_model: object | None = None
+    # dataset_hash(dataset), being computed in a thread while the pose functions are fitted
+    dataset_sha256: Future | None = field(default=None, repr=False, compare=False)
 
     @property
     def models(self) -> dict[str, object]:
@@ -191,11 +194,14 @@ def _fork_context():
 def _init_worker(camera: CameraModel, boards: tuple[BoardView, BoardView],
                  lidar: LidarSpec) -> None:
     _WORKER.update(camera=camera, boards=boards, lidar=lidar)
+    mark("worker-init")
 
 
 def _solve_task(task: tuple[Position, float | None]) -> PositionResult | DatasetError:
     pos, rho = task
-    return solve_safe((pos, _WORKER["camera"], _WORKER["boards"], _WORKER["lidar"], rho))
+    out = solve_safe((pos, _WORKER["camera"], _WORKER["boards"], _WORKER["lidar"], rho))
+    mark("task", index=pos.index)
+    return out
 
 
 def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
@@ -295,14 +301,18 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
         images = ImagePrefetch(todo, ds.image_size, laser_colour=ds.lidar.laser_colour)
     try:
         camera, intr = camera_for(ds)
+        mark("camera")
         boards = find_boards(ds, camera)
+        mark("boards")
         _WORKER["images"] = images  # an image not decoded yet is read on demand
         # the stripe's reflectance ratio (a few images) while the last images are decoded
         rho = dataset_reflectance_ratio(camera, boards, todo,
                                         laser_colour=ds.lidar.laser_colour)
+        mark("rho")
         # stopped, not waited for: no thread runs when the workers fork, and the images not
         # decoded yet are decoded by the workers, on both cores, instead of by one thread
         images.close()
+        mark("decode-stopped")
         return _calibrate(ds, camera, intr, boards, todo, skip, strict, method, progress,
                           workers, rho, fit_planes)
     finally:
@@ -337,6 +347,7 @@ def _worker_pool(workers: int, camera: CameraModel, boards: tuple[BoardView, Boa
         ex.shutdown(wait=True, cancel_futures=True)
         raise
     ex.shutdown(wait=False)
+    mark("pool-released")
 
 
 def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
@@ -352,10 +363,12 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
             chunk = max(1, min(2, len(todo) // (4 * workers)))  # small: little tail imbalance
             outcomes = list(_progress(ex.map(_solve_task, [(p, rho) for p in todo],
                                              chunksize=chunk), len(todo), progress))
+            mark("positions")
     else:
         jobs = [(p, camera, boards, ds.lidar, rho) for p in todo]
         outcomes = [solve_safe(j) for j in _progress(jobs, len(jobs), progress)]
     results, failed = _apply_skip_policy(ds, todo, outcomes, strict)
+    sha256 = _hash_in_background(ds)
     skipped += [(i, str(e)) for i, e in failed]
     warnings += [f"{e}; position {i} skipped (--strict stops instead)" for i, e in failed]
     psi = np.array([r.psi_deg for r in results])
@@ -364,13 +377,15 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     warnings += _check_angle_scale(ds, psi, samples)
     paper = fit_paper(psi, samples)
     rigid = fit_rigid(psi, samples, init=paper)
+    mark("fits")
     warnings += _setup_warnings(psi, results)
     warnings += list(intr.warnings) if intr is not None else []
     res = CalibrationResult(ds, camera, intr, boards, results, skipped, paper, rigid, method,
-                            warnings)
+                            warnings, dataset_sha256=sha256)
     if method == "joint":
         from .joint import fit_joint
 
+        mark("joint-import")
         try:
             res.joint_model = fit_joint(res, fit_planes=fit_planes)
         except (ValueError, np.linalg.LinAlgError) as e:
@@ -378,6 +393,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
             warnings.append(f"the joint fit failed ({e}); 'poses' holds the rigid fit instead")
         else:
             warnings += [f"joint fit: {w}" for w in res.joint_model.warnings]
+        mark("joint")
     return res
 
 
@@ -474,6 +490,24 @@ def dataset_hash(ds: Dataset) -> str:
     return h.hexdigest()
 
 
+def _hash_in_background(ds: Dataset) -> Future:
+    """:func:`dataset_hash` in a thread of its own: file reads and SHA-256 (OpenSSL) release
+    the GIL, so it runs on the core the serial pose-function fits leave idle; its result
+    (or its error) is taken by :func:`calibration_dict`. The thread ends by itself."""
+    ex = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lidarcal-hash")
+    try:
+        return ex.submit(dataset_hash, ds)
+    finally:
+        ex.shutdown(wait=False)
+
+
+def _dataset_sha256(res: CalibrationResult) -> str:
+    mark("hash-start")
+    out = dataset_hash(res.dataset) if res.dataset_sha256 is None else res.dataset_sha256.result()
+    mark("hash")
+    return out
+
+
 def _pose_rows(poses: dict[int, Pose], psi: dict[int, float], model=None) -> list[dict]:
     """Rows of ``poses``; with a model that corrects the encoder's angles, each row also
     gives ``psi_corrected_deg``, the angle the function was evaluated at."""
@@ -523,7 +557,7 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
                    for b in res.boards],
         "skipped": [{"index": i, "reason": r} for i, r in res.skipped],
         "warnings": list(res.warnings),
-        "provenance": {"lidarcal_version": __version__, "dataset_sha256": dataset_hash(ds),
+        "provenance": {"lidarcal_version": __version__, "dataset_sha256": _dataset_sha256(res),
                        "command": command},
     })
     return out
@@ -559,7 +593,9 @@ def sigma_block(model, positions: list[PositionResult]) -> dict:
 def write_calibration(res: CalibrationResult, out_dir: str | os.PathLike,
                       command: str | None = None) -> Path:
     path = Path(out_dir) / "calibration.json"
-    write_json_atomic(path, calibration_dict(res, command))
+    out = calibration_dict(res, command)
+    mark("calibration-dict")
+    write_json_atomic(path, out)
     return path
 
 

@@ -20,6 +20,11 @@ seconds per stage, so the remaining gap to the read-only floor can be attributed
 ``lidarcal calibrate`` overlaps decode with imports and boards (a background thread) and
 runs the positions in two worker processes: its wall time is about imports + boards +
 positions / 2 + fits + joint + write on an idle 2-core machine. A benchmark, never a test.
+
+Where the wall time of one whole ``lidarcal calibrate`` process goes (interpreter start,
+each import, the decode thread, the fork, the workers, the teardown at exit), as it runs:
+``scripts/bench_trace.py DATASET`` (it sets ``LIDARCAL_TRACE=1``, with which the process,
+its threads and its workers print phase marks to stderr, :mod:`lidarcal.trace`).
 """
 
 from __future__ import annotations
@@ -73,9 +78,12 @@ def main() -> None:
                             "gc.freeze(); gc.enable()")  # as lidarcal.cli imports them
 
     from lidarcal import pipeline as P
+    from lidarcal.cli import _reuse_freed_memory
     from lidarcal.io.dataset import load_dataset, read_scan, read_stripe_image
     from lidarcal.joint import fit_joint
     from lidarcal.turntable import fit_paper, fit_rigid
+
+    _reuse_freed_memory()  # glibc's allocator as in the command's process
 
     clk = _Clock()
     ds = load_dataset(a.dataset)

@@ -2,18 +2,23 @@
 
 The stripe images are decoded by a background thread that is stopped, not waited for,
 before the positions are solved in forked worker processes (which read the images not
-decoded by then); the command line imports with the garbage collector paused and frozen.
+decoded by then); the command line imports with the garbage collector paused and frozen,
+and its process reuses freed memory; ``LIDARCAL_TRACE`` marks the phases.
 """
 
 from __future__ import annotations
 
 import gc
+import json
+import os
+import subprocess
+import sys
 
 from conftest import bundled_dataset
 
 from lidarcal.cli import main
 from lidarcal.io.dataset import ImagePrefetch, load_dataset
-from lidarcal.pipeline import calibrate
+from lidarcal.pipeline import calibrate, dataset_hash
 
 
 def _samples(res) -> list[tuple]:
@@ -50,3 +55,43 @@ def test_main_in_process_leaves_the_garbage_collector_as_found(small_dataset, tm
         assert not gc.isenabled() and gc.get_freeze_count() == 0
     finally:
         gc.enable()
+
+
+def _without_command(path) -> dict:
+    cal = json.loads(path.read_text())
+    cal["provenance"].pop("command")
+    return cal
+
+
+def test_the_command_process_writes_what_main_writes_in_process_and_traces_it(tmp_path):
+    """``python -m lidarcal calibrate`` as its own process (glibc's allocator set to reuse
+    freed memory, :func:`lidarcal.cli._reuse_freed_memory`, and ``LIDARCAL_TRACE=1``) writes
+    the calibration.json that ``main()`` called in-process (neither) writes, and its stderr
+    carries the phase marks of :mod:`lidarcal.trace`: in order, one per position from two
+    forked workers, every image decoded by the background thread."""
+    ds = bundled_dataset(tmp_path / "ds", n=8)
+    assert main(["calibrate", str(ds), "--out", str(tmp_path / "a"), "--no-progress"]) == 0
+    p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(ds), "--out",
+                        str(tmp_path / "b"), "--no-progress"], capture_output=True, text=True,
+                       env={**os.environ, "LIDARCAL_TRACE": "1"}, check=False)
+    assert p.returncode == 0, p.stderr
+    assert _without_command(tmp_path / "b" / "calibration.json") == \
+        _without_command(tmp_path / "a" / "calibration.json")
+    # the hash computed in a thread while the pose functions are fitted is the dataset's
+    cal = json.loads((tmp_path / "b" / "calibration.json").read_text())
+    assert cal["provenance"]["dataset_sha256"] == dataset_hash(load_dataset(ds))
+    marks = [line.split() for line in p.stderr.splitlines() if line.startswith("lidarcal-trace ")]
+    assert all(line.startswith(("lidarcal-trace ", "warning: ")) for line in p.stderr.splitlines())
+    pids = {m[2] for m in marks}
+    parent = marks[0][2]
+    main_phases = [m[1] for m in marks if m[2] == parent and m[3] == "thread=MainThread"]
+    order = ["start", "numpy", "cli", "args", "dataset", "imports", "camera", "boards", "rho",
+             "decode-stopped", "positions", "fits", "joint", "written", "main-end", "atexit"]
+    assert [ph for ph in main_phases if ph in order] == order
+    tasks = [m for m in marks if m[1] == "task"]
+    assert sorted(int(m[-1].split("=")[1]) for m in tasks) == list(range(8))
+    assert {m[2] for m in tasks} <= pids - {parent} and len(pids - {parent}) == 2
+    decoded = [m for m in marks if m[1] == "decode-end"]
+    assert len(decoded) == 1 and "decoded=8" in decoded[0] and "of=8" in decoded[0]
+    walls = [float(m[4].split("=")[1]) for m in marks if m[2] == parent and m[3] == "thread=MainThread"]
+    assert walls == sorted(walls)

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from ..laser_colour import LASER_COLOURS, laser_response
+from ..trace import mark
 
 DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
@@ -428,6 +429,13 @@ class ImagePrefetch:
     Use it as a context manager (or call :meth:`close`): on leaving, decoding stops
     after the image in hand and the thread is joined, so no thread is left inside
     OpenCV when the interpreter exits (which aborts the process, status 134).
+
+    With ``image_size`` known, the images are kept in one block (``(n, height, width)``
+    uint8, one slice each) rather than one allocation each: numpy asks the kernel for
+    huge pages for a block this large, so keeping 87 images of 2 MB costs ~90 page
+    faults instead of ~43,000 (0.05-0.07 s of CPU), and forked workers inherit a
+    fraction of the page tables (fork and exit of a child measured 8-13 ms instead of
+    25-31 ms). An image of another shape or type is kept as decoded.
     """
 
     def __init__(self, positions: list[Position], image_size: tuple[int, int] | None,
@@ -441,19 +449,30 @@ class ImagePrefetch:
         if image_size is not None:
             n_max = int(max_bytes // max(image_size[0] * image_size[1], 1))
         self._todo = positions[:n_max]
+        self._block = None if image_size is None or not self._todo else \
+            np.empty((len(self._todo), image_size[1], image_size[0]), np.uint8)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="lidarcal-prefetch", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        for p in self._todo:
+        mark("decode-start")
+        for k, p in enumerate(self._todo):
             if self._stop.is_set():
-                return
+                break
             try:
-                self._images[p.index] = read_stripe_image(p.stripe_image, self._size,
-                                                          self._colour)
+                self._images[p.index] = self._keep(k, read_stripe_image(
+                    p.stripe_image, self._size, self._colour))
             except DatasetError as e:
                 self._images[p.index] = e
+        mark("decode-end", decoded=len(self._images), of=len(self._todo))
+
+    def _keep(self, k: int, img: np.ndarray) -> np.ndarray:
+        """Image ``k`` copied into its slice of the block (when it fits there)."""
+        if self._block is None or img.shape != self._block.shape[1:] or img.dtype != np.uint8:
+            return img
+        self._block[k] = img
+        return self._block[k]
 
     def join(self) -> ImagePrefetch:
         """Wait until every image is decoded."""
