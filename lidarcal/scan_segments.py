@@ -261,11 +261,12 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         ln = np.hypot(d[:, 0], d[:, 1])
         good = ln > 0
         if good.any():
-            i, d, ln = i[good], d[good], ln[good]
+            if not good.all():
+                i, d, ln = i[good], d[good], ln[good]
             nrm = np.column_stack([-d[:, 1], d[:, 0]]) / ln[:, None]
             off = np.einsum("ij,ij->i", p[i], nrm)
             inl = np.abs(p @ nrm.T - off) <= k * sigma  # (n, hypotheses)
-            best = inl[:, int(np.argmax(inl.sum(0)))]
+            best = inl[:, int(np.argmax(np.count_nonzero(inl, axis=0)))]
     mask = best
     line = fit_line_2d(p[mask]) if mask.sum() >= 2 else fit_line_2d(p)
     scale = sigma

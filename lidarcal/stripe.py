@@ -19,7 +19,7 @@ import numpy as np
 
 from .board import BoardView
 from .camera import backproject_to_plane
-from .geometry import Plane, fit_plane, fit_plane_algebraic, intersect_planes, unit
+from .geometry import Plane, cross3, fit_plane, fit_plane_algebraic, intersect_planes, unit
 from .io.dataset import CameraModel
 from .laser_colour import (  # noqa: F401  (re-exported: the stripe's public API)
     LASER_COLOURS,
@@ -340,7 +340,7 @@ def camera_lines_from_centres(camera: CameraModel, centres: Sequence[np.ndarray]
     E = intersect_planes(planes[0], planes[1], laser)
     ls = []
     for k in range(2):
-        lk = unit(np.cross(planes[k].normal, laser.normal))
+        lk = unit(cross3(planes[k].normal, laser.normal))
         if (pts[k].mean(0) - E) @ lk < 0:
             lk = -lk
         ls.append(lk)

@@ -641,7 +641,7 @@ def _fwhm(prof: np.ndarray, noise: float) -> float:
         return 3.0
     above = s[good] > 0.5 * pk[good, None]
     widths = np.count_nonzero(above, axis=1)
-    return float(np.clip(np.median(widths), 1.0, 30.0))
+    return float(np.clip(_median(widths), 1.0, 30.0))
 
 
 def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
@@ -664,8 +664,9 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         if keep.sum() < 5:
             break
         if camera is not None:
-            c = xy[keep].mean(0)
-            t = _principal_direction(xy[keep] - c)
+            q = xy[keep]
+            c = q.mean(0)
+            t = _principal_direction(q - c)
             r = ((xy - c) @ np.array([-t[1], t[0]])) * f
         else:
             c = pts[keep].mean(0)
