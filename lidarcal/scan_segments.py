@@ -271,12 +271,12 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
     line = fit_line_2d(p[mask]) if mask.sum() >= 2 else fit_line_2d(p)
     scale = sigma
     for _ in range(20):
-        r = line.distance(p)
+        r = np.abs(line.distance(p))
         # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
         # re-estimating it from already-trimmed inliers
-        scale = max(MAD_TO_SIGMA * _median(np.abs(r)), 0.25 * sigma)
-        new = np.abs(r) <= k * scale
-        if new.sum() < 2:
+        scale = max(MAD_TO_SIGMA * _median(r), 0.25 * sigma)
+        new = r <= k * scale
+        if np.count_nonzero(new) < 2:
             break
         line = fit_line_2d(p[new])
         if np.array_equal(new, mask):

@@ -214,7 +214,7 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
     profile, O(1) per profile and step (``half >= 1/2``).
     """
     n_rows, n = prof.shape
-    s = np.clip(prof, 0, None).astype(np.float64)
+    s = np.clip(prof, 0, None).astype(np.float64, copy=False)
     # running sums along each profile from integral images (row r + 1 minus row r)
     cs = cv2.integral(s, sdepth=cv2.CV_64F)
     cj = cv2.integral(s * np.arange(n), sdepth=cv2.CV_64F)
@@ -610,11 +610,10 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 
 def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ b`` for a short inner or outer dimension (``a`` (p, n), ``b`` (n, q), p or n
-    at most a few), as broadcast sums: no multi-threaded BLAS call, whose spinning threads
-    cost more CPU than these small products."""
-    if a.shape[1] <= a.shape[0]:  # short inner dimension: a sum of outer products
-        return sum(a[:, k, None] * b[k][None, :] for k in range(a.shape[1]))
-    return np.stack([(a[k][:, None] * b).sum(0) for k in range(a.shape[0])])
+    at most a few) by ``np.einsum``'s own loops (the sums in the order of broadcast sums):
+    no multi-threaded BLAS call, whose spinning threads cost more CPU than these small
+    products."""
+    return np.einsum("ij,jk->ik", a, b)
 
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
