@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -54,7 +55,9 @@ class CameraLines:
     ``laser_plane`` is the total-least-squares fit of eq. (4) to both boards'
     stripe points; ``laser_plane_algebraic`` the paper's ``ax + by + cz = 1``
     least squares, for comparison; ``laser_plane_lines`` the plane through
-    the two stripe lines fitted in their board planes (beyond the paper).
+    the two stripe lines fitted in their board planes (beyond the paper); these
+    two are computed from ``points_3d`` when first asked for (the calibration
+    does not use them).
     ``E`` (3,) = Pi_1 ^ Pi_2 ^ Pi_L, mm. ``l[k]`` is the unit direction of
     the stripe on board ``k`` (``n_k x n_L``), oriented from ``E`` towards
     that stripe's points; ``alpha = arccos(l0 . l1)``, rad.
@@ -64,7 +67,6 @@ class CameraLines:
     """
 
     laser_plane: Plane
-    laser_plane_algebraic: Plane
     E: np.ndarray
     l: np.ndarray  # (2, 3)
     alpha: float
@@ -72,12 +74,21 @@ class CameraLines:
     points_3d: tuple[np.ndarray, np.ndarray]
     residual_rms_mm: float
     board_planes: tuple[Plane, Plane]
-    laser_plane_lines: Plane | None = None
     rho: float | None = None
 
     @property
     def alpha_deg(self) -> float:
         return float(np.degrees(self.alpha))
+
+    @cached_property
+    def laser_plane_algebraic(self) -> Plane:
+        """The paper's algebraic fit of eq. (4) to both boards' stripe points."""
+        return fit_plane_algebraic(np.vstack(self.points_3d))
+
+    @cached_property
+    def laser_plane_lines(self) -> Plane:
+        """The plane through the two stripe lines (:func:`laser_plane_from_lines`)."""
+        return laser_plane_from_lines(self.points_3d, self.board_planes)
 
 
 def laser_plane_from_lines(points: tuple[np.ndarray, np.ndarray],
@@ -347,6 +358,5 @@ def camera_lines_from_centres(camera: CameraModel, centres: Sequence[np.ndarray]
     l = np.vstack(ls)
     alpha = float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
     rms = float(np.sqrt(np.mean(laser.distance(allp) ** 2)))
-    return CameraLines(laser, fit_plane_algebraic(allp), E, l, alpha, (centres[0], centres[1]),
-                       (pts[0], pts[1]), rms, (planes[0], planes[1]),
-                       laser_plane_from_lines((pts[0], pts[1]), tuple(planes)), rho)
+    return CameraLines(laser, E, l, alpha, (centres[0], centres[1]), (pts[0], pts[1]), rms,
+                       (planes[0], planes[1]), rho)
