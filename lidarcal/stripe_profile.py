@@ -371,15 +371,16 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
         pts = pts[:, ::-1]
     pts = pts + np.array([x_lo, y_lo], float)
     keep, fit_rms, xy = _reject_outliers(pts, camera)
+    pts = pts[keep]
     if not return_info:
-        return pts[keep]
-    quality = stripe_quality(pts[keep], int((~keep).sum()), fit_rms, width, snr[keep],
-                             mask_img, (x_lo, y_lo))
-    info = {"snr": snr[keep], "width_px": width, "noise_dn": noise, "rho": rho_used,
-            "fit_rms_px": fit_rms, "n_rejected": int((~keep).sum()), "samples": samples,
+        return pts
+    snr, n_rejected = snr[keep], len(keep) - len(pts)
+    quality = stripe_quality(pts, n_rejected, fit_rms, width, snr, mask_img, (x_lo, y_lo))
+    info = {"snr": snr, "width_px": width, "noise_dn": noise, "rho": rho_used,
+            "fit_rms_px": fit_rms, "n_rejected": n_rejected, "samples": samples,
             "quality": quality, "problem": quality_problem(quality),
             "normalised": None if xy is None else xy[keep]}
-    return pts[keep], info
+    return pts, info
 
 
 def _median(v: np.ndarray) -> float:
@@ -537,8 +538,8 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.n
     Other profiles keep their centroid ``cen``.
     """
     top = prof.max(axis=1)
-    flat = np.count_nonzero(prof >= top[:, None] - 1, axis=1) >= 3
-    rows = np.flatnonzero(flat & (top >= SATURATED_DN) & np.isfinite(cen))
+    rows = np.flatnonzero((top >= SATURATED_DN) & np.isfinite(cen))
+    rows = rows[np.count_nonzero(prof[rows] >= top[rows, None] - 1, axis=1) >= 3]  # flat tops
     out = cen.copy()
     if rows.size == 0:
         return out
