@@ -268,7 +268,8 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
             inl = np.abs(p @ nrm.T - off) <= k * sigma  # (n, hypotheses)
             best = inl[:, int(np.argmax(np.count_nonzero(inl, axis=0)))]
     mask = best
-    line = fit_line_2d(p[mask]) if mask.sum() >= 2 else fit_line_2d(p)
+    of_mask = np.count_nonzero(mask) >= 2  # ``line`` is the TLS line of ``p[mask]``
+    line = fit_line_2d(p[mask]) if of_mask else fit_line_2d(p)
     scale = sigma
     for _ in range(20):
         r = np.abs(line.distance(p))
@@ -278,10 +279,12 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         new = r <= k * scale
         if np.count_nonzero(new) < 2:
             break
-        line = fit_line_2d(p[new])
-        if np.array_equal(new, mask):
+        same = np.array_equal(new, mask)
+        if not (same and of_mask):  # (a refit of the same points would give this line again)
+            line = fit_line_2d(p[new])
+        if same:
             break
-        mask = new
+        mask, of_mask = new, True
     levels = _level_runs(p, line, mask, sigma)
     if levels.any():
         mask = mask | levels
