@@ -578,7 +578,8 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     if not groups:
         return None
     ball = np.concatenate([b for _, _, b in groups])
-    if np.percentile(ball, 95) - np.percentile(ball, 5) < min_contrast:
+    b5, b95 = np.percentile(ball, [5, 95])
+    if b95 - b5 < min_contrast:
         return None
     grid = np.linspace(0.02, 1.0, 99)
     cost = np.zeros(len(grid))
@@ -611,10 +612,10 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 
 def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ b`` for a short inner or outer dimension (``a`` (p, n), ``b`` (n, q), p or n
-    at most a few) by ``np.einsum``'s own loops (the sums in the order of broadcast sums):
-    no multi-threaded BLAS call, whose spinning threads cost more CPU than these small
-    products."""
-    return np.einsum("ij,jk->ik", a, b)
+    at most a few) by ``np.einsum``'s own loops on contiguous operands (the sums in the
+    order of broadcast sums, bit for bit): no multi-threaded BLAS call, whose spinning
+    threads cost more CPU than these small products."""
+    return np.einsum("ij,jk->ik", np.ascontiguousarray(a), np.ascontiguousarray(b))
 
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
