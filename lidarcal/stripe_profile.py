@@ -524,7 +524,8 @@ def _column_pass(img: np.ndarray, blk: np.ndarray | None, cols: np.ndarray, top:
     s = prof - _background(prof, bprof)
     start = np.argmax(_smooth_rows(s, sig_smooth), axis=1)
     peak = s[np.arange(len(s)), start]
-    s_div = s if divide is None else s / (1.0 - (1.0 - divide) * bprof)
+    # (rho = 1: the albedo is 1 everywhere and the division leaves s as it is)
+    s_div = s if divide is None or divide == 1.0 else s / (1.0 - (1.0 - divide) * bprof)
     cen, _ = _window_centroid(s_div, start.astype(float), half)
     return prof, bprof, s, start, peak, cen
 
