@@ -641,21 +641,31 @@ def _calibrate(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tuple
     return cam, np.asarray(per_view, dtype=float).ravel(), tuple(rvecs), tuple(tvecs)
 
 
-def _distort_normalised(camera: CameraModel, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV's distortion of normalised points and its 2 x 2 Jacobian per point."""
-    k1, k2, p1, p2, k3 = camera.dist
+def _distort_normalised(camera: CameraModel, xy: np.ndarray
+                        ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """OpenCV's distortion of normalised points (N, 2) and its 2 x 2 Jacobian per point, as
+    its entries ``(dxd/dx, dxd/dy, dyd/dx, dyd/dy)``, each (N,)."""
+    k1, k2, p1, p2, k3 = (float(v) for v in camera.dist)
     x, y = xy[:, 0], xy[:, 1]
     r2 = x * x + y * y
     rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     drad = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d rad / d r2
     xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    J = np.empty((len(xy), 2, 2))
-    J[:, 0, 0] = rad + x * drad * 2 * x + 2 * p1 * y + 6 * p2 * x
-    J[:, 0, 1] = x * drad * 2 * y + 2 * p1 * x + 2 * p2 * y
-    J[:, 1, 0] = y * drad * 2 * x + 2 * p1 * x + 2 * p2 * y
-    J[:, 1, 1] = rad + y * drad * 2 * y + 6 * p1 * y + 2 * p2 * x
+    cross = 2 * drad * x * y + 2 * p1 * x + 2 * p2 * y  # dxd/dy = dyd/dx
+    J = (rad + 2 * drad * x * x + 2 * p1 * y + 6 * p2 * x, cross, cross,
+         rad + 2 * drad * y * y + 6 * p1 * y + 2 * p2 * x)
     return np.column_stack([xd, yd]), J
+
+
+def _newton_step(J: tuple[np.ndarray, ...], r: np.ndarray) -> np.ndarray:
+    """``J^-1 r`` per point for the 2 x 2 Jacobians of :func:`_distort_normalised` (Cramer's
+    rule), (N, 2)."""
+    a, b, c, d = J
+    with np.errstate(divide="ignore", invalid="ignore"):  # singular: NaN, flagged by the caller
+        det = a * d - b * c
+        return np.column_stack([(d * r[:, 0] - b * r[:, 1]) / det,
+                                (a * r[:, 1] - c * r[:, 0]) / det])
 
 
 def undistort_pixels(camera: CameraModel, px: np.ndarray) -> np.ndarray:
@@ -688,10 +698,11 @@ def undistort_pixels(camera: CameraModel, px: np.ndarray) -> np.ndarray:
         r = d - target
         if np.max(np.abs(r)) < 1e-15:
             break
-        step = np.linalg.solve(J, r[:, :, None])[:, :, 0]
-        xy = xy - step
-    d, _ = _distort_normalised(camera, xy)
-    bad = np.linalg.norm(d - target, axis=1) * max(fx, fy) > 1e-6
+        xy = xy - _newton_step(J, r)
+    else:
+        d, _ = _distort_normalised(camera, xy)
+    r = d - target
+    bad = np.hypot(r[:, 0], r[:, 1]) * max(fx, fy) > 1e-6
     xy[bad] = np.nan
     return xy
 

@@ -35,10 +35,19 @@ def unit(v: np.ndarray) -> np.ndarray:
     return v / n
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The cross product of two single 3-vectors, ``np.cross(a, b)`` to the last bit, without
+    its broadcasting machinery (which costs ten times the product on one pair)."""
+    a0, a1, a2 = np.asarray(a, dtype=float).tolist()
+    b0, b1, b2 = np.asarray(b, dtype=float).tolist()
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def angle_between(a: np.ndarray, b: np.ndarray) -> float:
     """Angle between two vectors in radians (numerically safe near 0 and pi)."""
     a, b = unit(a), unit(b)
-    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))
+    return float(np.arctan2(np.linalg.norm(np.cross(a, b) if a.ndim > 1 or b.ndim > 1
+                                           else cross3(a, b)), np.dot(a, b)))
 
 
 def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from .geometry import Line3D, Pose, angle_between, nearest_rotation, unit
+from .geometry import Line3D, Pose, angle_between, cross3, nearest_rotation, unit
 from .scan import LidarLines
 
 
@@ -51,8 +51,8 @@ def pose_from_line_pairs(l_cam: np.ndarray, l_lidar: np.ndarray, E_cam: np.ndarr
     Ec = np.asarray(E_cam, dtype=float).reshape(3)
     El = np.asarray(E_lidar, dtype=float).reshape(3)
     lc, ll = unit(lc), unit(ll)
-    C = np.column_stack([lc[0], lc[1], np.cross(lc[0], lc[1])])
-    L = np.column_stack([ll[0], ll[1], np.cross(ll[0], ll[1])])
+    C = np.column_stack([lc[0], lc[1], cross3(lc[0], lc[1])])
+    L = np.column_stack([ll[0], ll[1], cross3(ll[0], ll[1])])
     if abs(np.linalg.det(L)) < 1e-9 or abs(np.linalg.det(C)) < 1e-9:
         raise ValueError("the two lines are parallel: eq. (13) has no solution")
     M = C @ np.linalg.inv(L)  # eq. (13)

@@ -255,7 +255,9 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         keep = _trim_outer(s.beams, resid, s.scale, from_start, max_trim)
         beams = s.beams[keep]
         span = np.arange(min(s.span[0], beams[0]), max(s.span[-1], beams[-1]) + 1)
-        rejected = np.setdiff1d(span[np.isfinite(rho[span])], beams)
+        off_line = np.isfinite(rho[span])  # the returns in the span, less the kept beams
+        off_line[beams - span[0]] = False
+        rejected = span[off_line]
         out.append((beams, rejected, s.scale))
     (b1, r1, sc1), (b2, r2, sc2) = out
     return VSegments(b1, b2, pts[b1], pts[b2], r1, r2, sigma, sc1, sc2, float(np.degrees(opening)),

@@ -261,26 +261,30 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         ln = np.hypot(d[:, 0], d[:, 1])
         good = ln > 0
         if good.any():
-            i, d, ln = i[good], d[good], ln[good]
+            if not good.all():
+                i, d, ln = i[good], d[good], ln[good]
             nrm = np.column_stack([-d[:, 1], d[:, 0]]) / ln[:, None]
             off = np.einsum("ij,ij->i", p[i], nrm)
             inl = np.abs(p @ nrm.T - off) <= k * sigma  # (n, hypotheses)
-            best = inl[:, int(np.argmax(inl.sum(0)))]
+            best = inl[:, int(np.argmax(np.count_nonzero(inl, axis=0)))]
     mask = best
-    line = fit_line_2d(p[mask]) if mask.sum() >= 2 else fit_line_2d(p)
+    of_mask = np.count_nonzero(mask) >= 2  # ``line`` is the TLS line of ``p[mask]``
+    line = fit_line_2d(p[mask]) if of_mask else fit_line_2d(p)
     scale = sigma
     for _ in range(20):
-        r = line.distance(p)
+        r = np.abs(line.distance(p))
         # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
         # re-estimating it from already-trimmed inliers
-        scale = max(MAD_TO_SIGMA * _median(np.abs(r)), 0.25 * sigma)
-        new = np.abs(r) <= k * scale
-        if new.sum() < 2:
+        scale = max(MAD_TO_SIGMA * _median(r), 0.25 * sigma)
+        new = r <= k * scale
+        if np.count_nonzero(new) < 2:
             break
-        line = fit_line_2d(p[new])
-        if np.array_equal(new, mask):
+        same = np.array_equal(new, mask)
+        if not (same and of_mask):  # (a refit of the same points would give this line again)
+            line = fit_line_2d(p[new])
+        if same:
             break
-        mask = new
+        mask, of_mask = new, True
     levels = _level_runs(p, line, mask, sigma)
     if levels.any():
         mask = mask | levels

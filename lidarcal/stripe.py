@@ -13,13 +13,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
 
 from .board import BoardView
 from .camera import backproject_to_plane
-from .geometry import Plane, fit_plane, fit_plane_algebraic, intersect_planes, unit
+from .geometry import Plane, cross3, fit_plane, fit_plane_algebraic, intersect_planes, unit
 from .io.dataset import CameraModel
 from .laser_colour import (  # noqa: F401  (re-exported: the stripe's public API)
     LASER_COLOURS,
@@ -54,7 +55,9 @@ class CameraLines:
     ``laser_plane`` is the total-least-squares fit of eq. (4) to both boards'
     stripe points; ``laser_plane_algebraic`` the paper's ``ax + by + cz = 1``
     least squares, for comparison; ``laser_plane_lines`` the plane through
-    the two stripe lines fitted in their board planes (beyond the paper).
+    the two stripe lines fitted in their board planes (beyond the paper); these
+    two are computed from ``points_3d`` when first asked for (the calibration
+    does not use them).
     ``E`` (3,) = Pi_1 ^ Pi_2 ^ Pi_L, mm. ``l[k]`` is the unit direction of
     the stripe on board ``k`` (``n_k x n_L``), oriented from ``E`` towards
     that stripe's points; ``alpha = arccos(l0 . l1)``, rad.
@@ -64,7 +67,6 @@ class CameraLines:
     """
 
     laser_plane: Plane
-    laser_plane_algebraic: Plane
     E: np.ndarray
     l: np.ndarray  # (2, 3)
     alpha: float
@@ -72,12 +74,21 @@ class CameraLines:
     points_3d: tuple[np.ndarray, np.ndarray]
     residual_rms_mm: float
     board_planes: tuple[Plane, Plane]
-    laser_plane_lines: Plane | None = None
     rho: float | None = None
 
     @property
     def alpha_deg(self) -> float:
         return float(np.degrees(self.alpha))
+
+    @cached_property
+    def laser_plane_algebraic(self) -> Plane:
+        """The paper's algebraic fit of eq. (4) to both boards' stripe points."""
+        return fit_plane_algebraic(np.vstack(self.points_3d))
+
+    @cached_property
+    def laser_plane_lines(self) -> Plane:
+        """The plane through the two stripe lines (:func:`laser_plane_from_lines`)."""
+        return laser_plane_from_lines(self.points_3d, self.board_planes)
 
 
 def laser_plane_from_lines(points: tuple[np.ndarray, np.ndarray],
@@ -340,13 +351,12 @@ def camera_lines_from_centres(camera: CameraModel, centres: Sequence[np.ndarray]
     E = intersect_planes(planes[0], planes[1], laser)
     ls = []
     for k in range(2):
-        lk = unit(np.cross(planes[k].normal, laser.normal))
+        lk = unit(cross3(planes[k].normal, laser.normal))
         if (pts[k].mean(0) - E) @ lk < 0:
             lk = -lk
         ls.append(lk)
     l = np.vstack(ls)
     alpha = float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
     rms = float(np.sqrt(np.mean(laser.distance(allp) ** 2)))
-    return CameraLines(laser, fit_plane_algebraic(allp), E, l, alpha, (centres[0], centres[1]),
-                       (pts[0], pts[1]), rms, (planes[0], planes[1]),
-                       laser_plane_from_lines((pts[0], pts[1]), tuple(planes)), rho)
+    return CameraLines(laser, E, l, alpha, (centres[0], centres[1]), (pts[0], pts[1]), rms,
+                       (planes[0], planes[1]), rho)

@@ -214,7 +214,7 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
     profile, O(1) per profile and step (``half >= 1/2``).
     """
     n_rows, n = prof.shape
-    s = np.clip(prof, 0, None).astype(np.float64)
+    s = np.clip(prof, 0, None).astype(np.float64, copy=False)
     # running sums along each profile from integral images (row r + 1 minus row r)
     cs = cv2.integral(s, sdepth=cv2.CV_64F)
     cj = cv2.integral(s * np.arange(n), sdepth=cv2.CV_64F)
@@ -371,15 +371,16 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
         pts = pts[:, ::-1]
     pts = pts + np.array([x_lo, y_lo], float)
     keep, fit_rms, xy = _reject_outliers(pts, camera)
+    pts = pts[keep]
     if not return_info:
-        return pts[keep]
-    quality = stripe_quality(pts[keep], int((~keep).sum()), fit_rms, width, snr[keep],
-                             mask_img, (x_lo, y_lo))
-    info = {"snr": snr[keep], "width_px": width, "noise_dn": noise, "rho": rho_used,
-            "fit_rms_px": fit_rms, "n_rejected": int((~keep).sum()), "samples": samples,
+        return pts
+    snr, n_rejected = snr[keep], len(keep) - len(pts)
+    quality = stripe_quality(pts, n_rejected, fit_rms, width, snr, mask_img, (x_lo, y_lo))
+    info = {"snr": snr, "width_px": width, "noise_dn": noise, "rho": rho_used,
+            "fit_rms_px": fit_rms, "n_rejected": n_rejected, "samples": samples,
             "quality": quality, "problem": quality_problem(quality),
             "normalised": None if xy is None else xy[keep]}
-    return pts[keep], info
+    return pts, info
 
 
 def _median(v: np.ndarray) -> float:
@@ -523,7 +524,8 @@ def _column_pass(img: np.ndarray, blk: np.ndarray | None, cols: np.ndarray, top:
     s = prof - _background(prof, bprof)
     start = np.argmax(_smooth_rows(s, sig_smooth), axis=1)
     peak = s[np.arange(len(s)), start]
-    s_div = s if divide is None else s / (1.0 - (1.0 - divide) * bprof)
+    # (rho = 1: the albedo is 1 everywhere and the division leaves s as it is)
+    s_div = s if divide is None or divide == 1.0 else s / (1.0 - (1.0 - divide) * bprof)
     cen, _ = _window_centroid(s_div, start.astype(float), half)
     return prof, bprof, s, start, peak, cen
 
@@ -537,8 +539,8 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.n
     Other profiles keep their centroid ``cen``.
     """
     top = prof.max(axis=1)
-    flat = np.count_nonzero(prof >= top[:, None] - 1, axis=1) >= 3
-    rows = np.flatnonzero(flat & (top >= SATURATED_DN) & np.isfinite(cen))
+    rows = np.flatnonzero((top >= SATURATED_DN) & np.isfinite(cen))
+    rows = rows[np.count_nonzero(prof[rows] >= top[rows, None] - 1, axis=1) >= 3]  # flat tops
     out = cen.copy()
     if rows.size == 0:
         return out
@@ -577,7 +579,8 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     if not groups:
         return None
     ball = np.concatenate([b for _, _, b in groups])
-    if np.percentile(ball, 95) - np.percentile(ball, 5) < min_contrast:
+    b5, b95 = np.percentile(ball, [5, 95])
+    if b95 - b5 < min_contrast:
         return None
     grid = np.linspace(0.02, 1.0, 99)
     cost = np.zeros(len(grid))
@@ -610,11 +613,10 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 
 def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ b`` for a short inner or outer dimension (``a`` (p, n), ``b`` (n, q), p or n
-    at most a few), as broadcast sums: no multi-threaded BLAS call, whose spinning threads
-    cost more CPU than these small products."""
-    if a.shape[1] <= a.shape[0]:  # short inner dimension: a sum of outer products
-        return sum(a[:, k, None] * b[k][None, :] for k in range(a.shape[1]))
-    return np.stack([(a[k][:, None] * b).sum(0) for k in range(a.shape[0])])
+    at most a few) by ``np.einsum``'s own loops on contiguous operands (the sums in the
+    order of broadcast sums, bit for bit): no multi-threaded BLAS call, whose spinning
+    threads cost more CPU than these small products."""
+    return np.einsum("ij,jk->ik", np.ascontiguousarray(a), np.ascontiguousarray(b))
 
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
@@ -641,7 +643,7 @@ def _fwhm(prof: np.ndarray, noise: float) -> float:
         return 3.0
     above = s[good] > 0.5 * pk[good, None]
     widths = np.count_nonzero(above, axis=1)
-    return float(np.clip(np.median(widths), 1.0, 30.0))
+    return float(np.clip(_median(widths), 1.0, 30.0))
 
 
 def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
@@ -664,8 +666,9 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         if keep.sum() < 5:
             break
         if camera is not None:
-            c = xy[keep].mean(0)
-            t = _principal_direction(xy[keep] - c)
+            q = xy[keep]
+            c = q.mean(0)
+            t = _principal_direction(q - c)
             r = ((xy - c) @ np.array([-t[1], t[0]])) * f
         else:
             c = pts[keep].mean(0)

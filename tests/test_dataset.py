@@ -249,3 +249,36 @@ def test_lidar_range_limits_must_be_ordered_and_non_negative(tmp_path, rmin, rma
     with pytest.raises(DatasetError, match=r"range_min_mm .* range_max_mm") as e:
         load_dataset(root)
     assert str(e.value).startswith(str(root / "dataset.json"))
+
+
+@pytest.mark.parametrize("variant", ["plain", "crlf_bom", "blank_lines", "extra_column",
+                                     "quoted", "ros_inf", "empty_range", "columns_swapped"])
+def test_scan_readers_agree(tmp_path, variant):
+    """read_scan reads plain files with numpy's C reader and the rest with the careful csv
+    reader: both give the values ``float`` gives, whatever the file looks like."""
+    rng = np.random.default_rng(3)
+    ang = np.sort(rng.uniform(-30, 30, 200)).round(6)
+    r = rng.uniform(800, 2900, 200).round(1)
+    rows = [f"{a!r},{b!r}" for a, b in zip(ang.tolist(), r.tolist())]
+    head, nl = "angle_deg,range_mm", "\n"
+    want = r.copy()
+    if variant == "extra_column":
+        head, rows = head + ",intensity", [f"{x},{k % 7}" for k, x in enumerate(rows)]
+    elif variant == "quoted":
+        rows[5] = f'"{ang[5]}",{r[5]}'
+    elif variant == "ros_inf":
+        rows[7], want[7] = f"{ang[7]},inf", np.nan
+    elif variant == "empty_range":
+        rows[9], want[9] = f"{ang[9]},", np.nan
+    elif variant == "columns_swapped":
+        head, rows = "range_mm,angle_deg", [",".join(x.split(",")[::-1]) for x in rows]
+    elif variant == "blank_lines":
+        rows[3:3] = ["", "  "]
+    elif variant == "crlf_bom":
+        nl = "\r\n"
+    p = tmp_path / "scan.csv"
+    text = nl.join([head, *rows]) + nl
+    p.write_bytes((("\ufeff" if variant == "crlf_bom" else "") + text).encode())
+    got_a, got_r = read_scan(p)
+    assert np.array_equal(got_a, ang)
+    assert np.array_equal(got_r, want, equal_nan=True)

@@ -323,17 +323,11 @@ def read_csv_columns(path: Path, required: tuple[str, ...], expected: str,
     Raises :class:`DatasetError` for an unreadable file, a missing column or a row with
     more fields than the header.
     """
+    text = _read_text(path, gzipped)
     try:
-        if gzipped:
-            with gzip.open(path, "rt", newline="", encoding="utf-8-sig") as f:
-                text = f.read()
-        else:
-            with open(path, newline="", encoding="utf-8-sig") as f:
-                text = f.read()
         rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
-    except (UnicodeDecodeError, csv.Error, OSError, EOFError) as e:
-        raise DatasetError(path, f"not a readable {'(gzip) ' if gzipped else ''}CSV "
-                                 f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+    except csv.Error as e:
+        raise _unreadable(path, gzipped, e) from None
     if not rows:
         raise DatasetError(path, f"not a readable CSV (the file is empty); {expected}")
     header = [h.strip() for h in rows[0]]
@@ -348,6 +342,24 @@ def read_csv_columns(path: Path, required: tuple[str, ...], expected: str,
     where = [header.index(c) for c in required]
     body = rows[1:]
     return {c: [r[j] if j < len(r) else "" for r in body] for c, j in zip(required, where)}
+
+
+def _read_text(path: Path, gzipped: bool = False) -> str:
+    """The text of a (gzipped) CSV file, UTF-8 with or without a byte-order mark, line endings
+    kept (the csv module reads them); :class:`DatasetError` when it cannot be read."""
+    try:
+        if gzipped:
+            with gzip.open(path, "rt", newline="", encoding="utf-8-sig") as f:
+                return f.read()
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            return f.read()
+    except (UnicodeDecodeError, OSError, EOFError) as e:
+        raise _unreadable(path, gzipped, e) from None
+
+
+def _unreadable(path: Path, gzipped: bool, e: Exception) -> DatasetError:
+    return DatasetError(path, f"not a readable {'(gzip) ' if gzipped else ''}CSV "
+                              f"({str(e).splitlines()[0] if str(e) else type(e).__name__})")
 
 
 def _measurements(items: Any, root: Path, jpath: Path) -> list[MeasurementSpec]:
@@ -509,16 +521,46 @@ def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, n
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "missing scan; copy it again or drop this position")
-    cols = read_csv_columns(path, ("angle_deg", "range_mm"), "expected header angle_deg,range_mm")
-    if not cols["angle_deg"]:
-        raise DatasetError(path, "scan has no rows")
-    ang = _numeric_column(cols["angle_deg"], path, "angle_deg", allow_empty=False)
-    rng = _ranges(cols["range_mm"], path, lidar)
+    plain = _plain_scan_columns(_read_text(path))
+    if plain is not None:  # every field a finite number: the checks below see the same values
+        ang, rng = plain[0], _ranges([], path, lidar, plain[1])
+    else:  # the careful reader, which names the offending row
+        cols = read_csv_columns(path, ("angle_deg", "range_mm"),
+                                "expected header angle_deg,range_mm")
+        if not cols["angle_deg"]:
+            raise DatasetError(path, "scan has no rows")
+        ang = _numeric_column(cols["angle_deg"], path, "angle_deg", allow_empty=False)
+        rng = _ranges(cols["range_mm"], path, lidar)
     if np.any(np.diff(ang) <= 0):
         raise DatasetError(path, "angles are not strictly ascending; one row per beam expected")
     if lidar is not None:
         _check_beam_angles(path, ang, lidar)
     return ang, rng
+
+
+def _plain_scan_columns(text: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(angle_deg, range_mm)`` of a plain scan CSV by numpy's C reader (``np.loadtxt``), or
+    None when the file needs :func:`read_csv_columns`'s careful reading.
+
+    Plain: a header naming both columns, then rows of as many fields as the header, each a
+    finite number (blank lines allowed). Anything else (quotes, empty fields, short or long
+    rows, text, ``inf``/``nan``, no rows) gives None, and the careful reader then reads the
+    same values or names the offending row, as it always did. ``np.loadtxt`` accepts no
+    number that ``float`` rejects and rounds as ``float`` does (both correctly rounded).
+    """
+    if '"' in text:
+        return None
+    head, _, body = text.lstrip("\r\n").partition("\n")
+    header = [h.strip() for h in head.split(",")]
+    if "angle_deg" not in header or "range_mm" not in header or not body.strip():
+        return None
+    try:
+        data = np.loadtxt(io.StringIO(body), delimiter=",", comments=None, ndmin=2)
+    except ValueError:
+        return None
+    if data.shape[0] == 0 or data.shape[1] != len(header) or not np.isfinite(data).all():
+        return None
+    return data[:, header.index("angle_deg")], data[:, header.index("range_mm")]
 
 
 def _check_beam_angles(path: Path, ang: np.ndarray, lidar: LidarSpec) -> None:
