@@ -424,11 +424,11 @@ def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
         return Jt[:, 3:6].reshape(-1, 2, 3)
     iz = 1 / P[:, 2]
     xy = P[:, :2] * iz[:, None]
-    _, Jd = _distort_normalised(camera, xy)
+    _, (dxx, dxy, dyx, dyy) = _distort_normalised(camera, xy)  # J_d's entries, each (N,)
     out = np.empty((len(P), 2, 3))
     A = out[:, :, :2]  # d pixel / d (X, Y) at fixed Z: diag(fx, fy) J_d / Z
-    A[:, 0] = K[0, 0] * Jd[:, 0] * iz[:, None]
-    A[:, 1] = K[1, 1] * Jd[:, 1] * iz[:, None]
+    A[:, 0, 0], A[:, 0, 1] = K[0, 0] * dxx * iz, K[0, 0] * dxy * iz
+    A[:, 1, 0], A[:, 1, 1] = K[1, 1] * dyx * iz, K[1, 1] * dyy * iz
     out[:, :, 2] = -(A[:, :, 0] * xy[:, :1] + A[:, :, 1] * xy[:, 1:])
     return out
 
