@@ -508,12 +508,16 @@ def _dataset_sha256(res: CalibrationResult) -> str:
     return out
 
 
-def _pose_rows(poses: dict[int, Pose], psi: dict[int, float], model=None) -> list[dict]:
-    """Rows of ``poses``; with a model that corrects the encoder's angles, each row also
-    gives ``psi_corrected_deg``, the angle the function was evaluated at."""
+def _pose_rows(model, psi: dict[int, float]) -> list[dict]:
+    """The pose function ``model`` at every position, as :meth:`CalibrationResult.fitted`
+    (evaluated at all angles in one ``pose_arrays`` call); with a model that corrects the
+    encoder's angles, each row also gives ``psi_corrected_deg``, the angle it was evaluated at."""
     at = model.position_psi if getattr(model, "angle_corrections", None) else None
-    return [{"index": i, "psi_deg": psi[i], **({"psi_corrected_deg": at(i, psi[i])} if at else {}),
-             **p.to_dict()} for i, p in sorted(poses.items())]
+    idx = sorted(psi)
+    psi_at = [at(i, psi[i]) for i in idx] if at else [psi[i] for i in idx]
+    R, T = model.pose_arrays(np.asarray(psi_at, dtype=float))
+    return [{"index": i, "psi_deg": psi[i], **({"psi_corrected_deg": a} if at else {}),
+             "R": r.tolist(), "T_mm": t.tolist()} for i, a, r, t in zip(idx, psi_at, R, T)]
 
 
 def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict:
@@ -535,14 +539,14 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
         "axis": {"point_mm": res.model.axis.point.tolist(),
                  "direction": res.model.axis.direction.tolist()},
         "samples": samples,
-        "poses": _pose_rows(res.fitted(), psi, res.model),
+        "poses": _pose_rows(res.model, psi),
         "model": res.model.to_dict(),
         "method": res.method,
     }
     for name, m in res.models.items():
         if name != res.method:
             out[f"model_{name}"] = m.to_dict()
-            out[f"poses_{name}"] = _pose_rows(res.fitted(m), psi, m)
+            out[f"poses_{name}"] = _pose_rows(m, psi)
     if res.joint_model is not None:
         out["sigma"] = sigma_block(res.joint_model, res.positions)
     if res.method == "joint" and getattr(res.joint_model, "ranging", None) is not None:

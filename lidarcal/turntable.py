@@ -112,6 +112,8 @@ class PoseFunction(Protocol):
 
     def pose(self, psi_deg: float | np.ndarray) -> Pose | list[Pose]: ...
 
+    def pose_arrays(self, psi_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
     def to_dict(self) -> dict: ...
 
 
@@ -249,6 +251,10 @@ class PaperModel:
 
     def pose(self, psi_deg: float | np.ndarray) -> Pose | list[Pose]:
         """LiDAR pose(s) at turntable angle(s) ``psi_deg``, eqs. (20)-(27)."""
+        return _poses_out(psi_deg, *self.pose_arrays(psi_deg))
+
+    def pose_arrays(self, psi_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Eqs. (20)-(27) at every angle of ``psi_deg`` in one pass: ``R`` (N, 3, 3), ``T`` (N, 3) mm."""
         k = self.axis.direction
         d = np.radians(np.atleast_1d(np.asarray(psi_deg, dtype=float)) - self.psi1_deg)
         O_L = self.centre_G + rotate_perpendicular(self.centre_v1, k, d - self.centre_dpsi)  # (20)-(21)
@@ -256,7 +262,7 @@ class PaperModel:
         n_z = unit(n_z)  # unit by construction; removes rounding
         n_x = _solve_x_axis(k, n_z, self.d_X, self.x_branch)  # (25)
         R = np.stack([n_x, np.cross(n_z, n_x), n_z], axis=2)  # (26)
-        return _poses_out(psi_deg, R, O_L)  # (27)
+        return R, O_L  # (27)
 
     def to_dict(self) -> dict:
         return {
@@ -388,12 +394,16 @@ class RigidModel:
 
     def pose(self, psi_deg: float | np.ndarray) -> Pose | list[Pose]:
         """LiDAR pose(s) at turntable angle(s) ``psi_deg``."""
+        return _poses_out(psi_deg, *self.pose_arrays(psi_deg))
+
+    def pose_arrays(self, psi_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pose at every angle of ``psi_deg`` in one pass: ``R`` (N, 3, 3), ``T`` (N, 3) mm."""
         t = np.radians(np.atleast_1d(np.asarray(psi_deg, dtype=float)) - self.psi_ref_deg)
         rot = self.axis.rotation(t)
         R = (rot * Rotation.from_matrix(self.R_ref)).as_matrix()
         R = R.reshape(-1, 3, 3)
         T = self.axis.point + rot.apply(self.T_ref - self.axis.point).reshape(-1, 3)
-        return _poses_out(psi_deg, R, T)
+        return R, T
 
     def to_dict(self) -> dict:
         out = {"type": "rigid", "formula": RIGID_FORMULA, "axis": self.axis.to_dict(),

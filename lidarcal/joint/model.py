@@ -60,6 +60,10 @@ class JointModel:
         """LiDAR pose(s) at turntable angle(s) ``psi_deg`` (the rigid model)."""
         return self.rigid.pose(psi_deg)
 
+    def pose_arrays(self, psi_deg: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`lidarcal.turntable.RigidModel.pose_arrays`: ``R`` (N, 3, 3), ``T`` (N, 3) mm."""
+        return self.rigid.pose_arrays(psi_deg)
+
     def position_psi(self, index: int, psi_deg: float) -> float:
         """The turntable angle of dataset position ``index``: the reported ``psi_deg`` plus
         its estimated jitter correction, if any."""
