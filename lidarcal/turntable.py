@@ -36,6 +36,7 @@ from .evaluate import axis_direction_error_deg, pose_error
 from .geometry import (
     Line3D,
     Pose,
+    cross3,
     fit_circle_3d,
     fit_plane,
     plane_basis,
@@ -483,11 +484,29 @@ def _rigid_predict(x: np.ndarray, base: tuple, t: np.ndarray):
     k0, B0, a0, R0, T0 = base
     k = unit(k0 + x[:2] @ B0)
     a = a0 + x[2:4] @ B0
-    R_ref = Rotation.from_rotvec(x[4:7]).as_matrix() @ R0
+    R_ref = _rotvec_matrix(x[4:7]) @ R0
     T_ref = T0 + x[7:10]
-    rot = Rotation.from_rotvec(np.outer(t, k))
-    return (a + rot.apply(T_ref - a), rot.apply(R_ref[:, 2]), rot.apply(R_ref[:, 0]),
-            (k, a, R_ref, T_ref))
+    c, s = np.cos(t)[:, None], np.sin(t)[:, None]
+    turn = lambda v: _rodrigues(v, k, c, s)
+    return a + turn(T_ref - a), turn(R_ref[:, 2]), turn(R_ref[:, 0]), (k, a, R_ref, T_ref)
+
+
+def _rodrigues(v: np.ndarray, k: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula: ``v`` (3,) turned about unit ``k`` by every angle, (N, 3).
+
+    ``v cos t + (k x v) sin t + k (k . v)(1 - cos t)``; ``cos_t``, ``sin_t`` are (N, 1).
+    """
+    return v * cos_t + cross3(k, v) * sin_t + (k * (k @ v)) * (1.0 - cos_t)
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (3,), rad (Rodrigues; identity at 0)."""
+    angle = float(np.sqrt(w @ w))
+    if angle == 0.0:
+        return np.eye(3)
+    k = w / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
 
 
 def _residual_norms(pred, T, Z, X) -> np.ndarray:
@@ -643,12 +662,18 @@ def table1(model: PoseFunction, psi_deg, samples: Sequence[Pose]) -> pd.DataFram
 def table1_columns(model: PoseFunction, psi_deg, samples: Sequence[Pose]) -> dict[str, np.ndarray]:
     """:func:`table1` as a dict of columns (numpy arrays; no pandas needed)."""
     psi = np.asarray(psi_deg, dtype=float).ravel()
-    fitted = model.pose(psi)
-    errs = [pose_error(f, s) for f, s in zip(fitted, samples)]
-    out = {"psi_deg": psi}
-    for q in ("centre_mm", "z_axis_deg", "x_axis_deg"):
-        out[q] = np.array([e[q] for e in errs], dtype=float)
-    return out
+    R, T = model.pose_arrays(psi)
+    R_s = np.array([s.R for s in samples], dtype=float).reshape(-1, 3, 3)
+    T_s = np.array([s.T for s in samples], dtype=float).reshape(-1, 3)
+    return {"psi_deg": psi, "centre_mm": np.linalg.norm(T - T_s, axis=1),
+            "z_axis_deg": _angles_deg(R[:, :, 2], R_s[:, :, 2]),
+            "x_axis_deg": _angles_deg(R[:, :, 0], R_s[:, :, 0])}
+
+
+def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise angles (deg) between vectors (N, 3), as :func:`lidarcal.geometry.angle_between_deg`."""
+    a, b = unit(a), unit(b)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
 
 
 def table1_summary(table: pd.DataFrame) -> pd.DataFrame:
