@@ -361,8 +361,12 @@ class _Problem:
         spread = self.stripe.spread  # per (position, board) -> per centre
         Jt = ent["Jt"]
         pu = np.einsum("mij,mj->mi", Jt, spread(u))
-        pl = unit(np.einsum("mij,mj->mi", Jt, spread(line)))
-        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0])  # px per mm along u
+        pl = np.einsum("mij,mj->mi", Jt, spread(line))  # the imaged stripe's direction
+        pl_len = np.hypot(pl[:, 0], pl[:, 1])
+        if np.any(pl_len == 0):
+            raise ValueError("a stripe images to a point: no stripe direction in the image")
+        # px per mm along u: pu's component perpendicular to the imaged stripe
+        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0]) / pl_len
         du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
         self.scale_px = perp / spread(np.maximum(du, 1e-9))
         self.scale_depth = ent["P"][:, 2].copy()  # the depths it holds at (stripe_scale)
