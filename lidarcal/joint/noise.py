@@ -101,13 +101,23 @@ class _Groups:
         over their rows, :meth:`spread`)."""
         if J.shape[0] == 0:
             return J
-        wJ = J * self.w[:, None]
         inv = 1 / self.sig_g
-        a0 = self.group_sums(wJ) * (self.g0 * inv / np.maximum(self.n, 1e-300))[:, None]
-        np.multiply(wJ, self.sc[:, None], out=wJ)
-        a1 = self.group_sums(wJ) * (self.g1 * inv / self.ss)[:, None]
-        if self._sorted and len(J) >= BLOCK_ROWS * len(self._nonempty):
-            # large groups: one block of rows at a time (it stays in cache)
+        blocked = self._sorted and len(J) >= BLOCK_ROWS * len(self._nonempty)
+        if blocked:
+            # large groups: one block of rows at a time (it stays in cache); both group sums
+            # (of w J and of w s J) as one (2, n) x (n, k) product per group
+            ws = np.stack([self.w, self.w * self.sc])
+            sums = np.zeros((self.n_groups, 2, J.shape[1]))
+            for g, a, b in zip(self._nonempty, self._starts, self._starts + self._size[self._nonempty]):
+                np.matmul(ws[:, a:b], J[a:b], out=sums[g])
+            a0 = sums[:, 0] * (self.g0 * inv / np.maximum(self.n, 1e-300))[:, None]
+            a1 = sums[:, 1] * (self.g1 * inv / self.ss)[:, None]
+        else:
+            wJ = J * self.w[:, None]
+            a0 = self.group_sums(wJ) * (self.g0 * inv / np.maximum(self.n, 1e-300))[:, None]
+            np.multiply(wJ, self.sc[:, None], out=wJ)
+            a1 = self.group_sums(wJ) * (self.g1 * inv / self.ss)[:, None]
+        if blocked:
             out = np.empty_like(J)
             sc = self.sc
             for g, a, b in zip(self._nonempty, self._starts, self._starts + self._size[self._nonempty]):
