@@ -491,6 +491,55 @@ def _rigid_predict(x: np.ndarray, base: tuple, t: np.ndarray):
     return a + turn(T_ref - a), turn(R_ref[:, 2]), turn(R_ref[:, 0]), (k, a, R_ref, T_ref)
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``[v]_x`` (3, 3): ``[v]_x u = v x u``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _rigid_jacobian(x: np.ndarray, base: tuple, t: np.ndarray) -> np.ndarray:
+    """d (centre, z axis, x axis) / d x of :func:`_rigid_predict`, (N, 9, 10).
+
+    With ``Q_i = Rot_k(t_i)`` (Rodrigues): ``d(Q v)/dk = -sin t [v]_x + (1 - cos t)((k.v) I +
+    k v^T)``, through ``k = unit(k0 + dk B0)`` (``dk/d dk = (I - k k^T) B0^T / |k0 + dk B0|``);
+    centre ``a + Q (T_ref - a)``: ``I - Q`` on the axis point, ``Q`` on the centre; the axes
+    ``Q R_ref e_j`` with ``R_ref = Exp(omega) R0``: ``d(Exp(omega) v)/d omega = -[Exp(omega)
+    v]_x J_l(omega)`` (SO(3)'s left Jacobian, ``I`` at ``omega = 0``).
+    """
+    k0, B0, a0, R0, T0 = base
+    m = k0 + x[:2] @ B0
+    norm_m = float(np.sqrt(m @ m))
+    k = m / norm_m
+    a = a0 + x[2:4] @ B0
+    w = x[4:7]
+    R_ref = _rotvec_matrix(w) @ R0
+    T_ref = T0 + x[7:10]
+    c, s = np.cos(t)[:, None, None], np.sin(t)[:, None, None]
+    kkT = np.outer(k, k)
+    Q = c * np.eye(3) + s * _skew(k) + (1.0 - c) * kkT  # (N, 3, 3)
+    dk = (np.eye(3) - kkT) @ B0.T / norm_m  # (3, 2)
+    angle = float(np.sqrt(w @ w))
+    if angle < 1e-8:
+        J_l = np.eye(3) + 0.5 * _skew(w)
+    else:
+        W = _skew(w)
+        J_l = (np.eye(3) + (1.0 - np.cos(angle)) / angle**2 * W
+               + (angle - np.sin(angle)) / angle**3 * (W @ W))
+
+    def d_turn_dk(v: np.ndarray) -> np.ndarray:  # (N, 3, 2)
+        D = -s * _skew(v) + (1.0 - c) * ((k @ v) * np.eye(3) + np.outer(k, v))
+        return D @ dk
+
+    J = np.zeros((len(t), 9, 10))
+    J[:, 0:3, 0:2] = d_turn_dk(T_ref - a)
+    J[:, 0:3, 2:4] = (np.eye(3) - Q) @ B0.T
+    J[:, 0:3, 7:10] = Q
+    for row, col in ((3, 2), (6, 0)):
+        v = R_ref[:, col]
+        J[:, row:row + 3, 0:2] = d_turn_dk(v)
+        J[:, row:row + 3, 4:7] = Q @ (-_skew(v) @ J_l)
+    return J
+
+
 def _rodrigues(v: np.ndarray, k: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarray) -> np.ndarray:
     """Rodrigues' formula: ``v`` (3,) turned about unit ``k`` by every angle, (N, 3).
 
@@ -591,8 +640,12 @@ def fit_rigid(psi_deg, samples: Sequence[Pose], init: PoseFunction | None = None
         r = np.concatenate([(c - T) / sig[0], (z - Z) / sig[1], (xa - X) / sig[2]], axis=1)
         return (r * sw[:, None]).ravel()
 
+    def jacobian(x: np.ndarray, base: tuple, sig: np.ndarray) -> np.ndarray:
+        J = _rigid_jacobian(x, base, t) / np.repeat(sig, 3)[None, :, None]
+        return (J * sw[:, None, None]).reshape(-1, 10)
+
     def solve(x: np.ndarray, base: tuple, sig: np.ndarray):
-        return least_squares(residuals, x, args=(base, sig), loss=loss, f_scale=f_scale,
+        return least_squares(residuals, x, jac=jacobian, args=(base, sig), loss=loss, f_scale=f_scale,
                              x_scale="jac", method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12)
 
     # noise scales from the closed-form start; every start (closed form, ``init``) is
