@@ -413,3 +413,45 @@ def test_angle_scale_is_one_for_degrees_and_names_radians_and_gears(seed):
     assert abs(angle_scale(np.radians(psi), samples).ratio - 1.0) > 10
     assert angle_scale(psi / 0.9, samples).ratio == pytest.approx(0.9, abs=0.01)
     assert angle_scale(np.degrees(psi), samples).ratio < 0.5  # wrapped past 180 deg, still far off
+
+
+# ------------------------------------------------------------ derivatives and batches
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), step_scale=st.sampled_from([0.0, 1e-9, 0.05, 0.5]))
+def test_rigid_jacobian_matches_central_differences(seed, step_scale):
+    """fit_rigid's analytic Jacobian (Rodrigues' derivative wrt the axis, SO(3)'s left
+    Jacobian for the reference rotation) against central differences of the prediction, at
+    the base (x = 0), next to it and at parameter steps far from it."""
+    from lidarcal.turntable import _rigid_jacobian, _rigid_predict
+
+    rng = np.random.default_rng(seed)
+    truth = random_truth(rng)
+    k0 = truth.axis.direction
+    base = (k0, plane_basis(k0), truth.axis.point, truth.R_ref, truth.T_ref)
+    t = np.radians(rng.uniform(-30, 30, 6))
+    x = rng.normal(size=10) * step_scale * np.r_[1, 1, 100, 100, 1, 1, 1, 100, 100, 100]
+
+    def f(v):
+        return np.concatenate(_rigid_predict(v, base, t)[:3], axis=1).ravel()
+
+    h = np.r_[np.full(2, 1e-6), np.full(2, 1e-4), np.full(3, 1e-6), np.full(3, 1e-4)]
+    numeric = np.column_stack([(f(x + h[j] * e) - f(x - h[j] * e)) / (2 * h[j])
+                               for j, e in enumerate(np.eye(10))])
+    analytic = _rigid_jacobian(x, base, t).reshape(-1, 10)
+    # central differences are exact to O(h^2) (~1e-10 relative here) plus rounding
+    np.testing.assert_allclose(analytic, numeric, atol=1e-6 * np.abs(numeric).max())
+
+
+@pytest.mark.parametrize("seed", [3, 8])
+def test_pose_arrays_is_pose_at_every_angle(seed):
+    """``pose_arrays`` (every angle in one pass, as calibration.json's poses use it) gives the
+    poses ``pose`` gives one angle at a time, for both pose functions."""
+    _, psi, _, samples = rig(seed, 12, 1.5)
+    for model in (fit_paper(psi, samples), fit_rigid(psi, samples)):
+        R, T = model.pose_arrays(psi)
+        for j, a in enumerate(psi):
+            p = model.pose(float(a))
+            np.testing.assert_allclose(R[j], p.R, atol=1e-14)
+            np.testing.assert_allclose(T[j], p.T, atol=1e-9)
