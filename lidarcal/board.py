@@ -21,6 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .camera import detect_chessboard, project_points, sb_accuracy_corners, undistort_pixels
+from .corner_symmetry import symmetric_corners
 from .geometry import MAD_TO_SIGMA, Plane, as_points, nearest_rotation
 from .io.dataset import BoardSpec, CameraModel
 
@@ -400,9 +401,6 @@ def sharpest_corners(gray: np.ndarray, corners: np.ndarray, board: BoardSpec,
     (paper rig seed 11: 0.062 against 0.031; harsh seed 61: 0.086 against 0.070), and the
     choice took SB's on all ten boards. With the true camera the V's PnP planes then come
     within 0.001-0.010 deg of truth (0.002-0.036 deg with the first corners alone)."""
-    alt = sb_accuracy_corners(gray, corners, board.pattern_size)
-    if alt is None:
-        return corners
     obj = board.object_points()
 
     def rms(c: np.ndarray) -> float:
@@ -412,7 +410,32 @@ def sharpest_corners(gray: np.ndarray, corners: np.ndarray, board: BoardSpec,
             return np.inf
         return reprojection_rms_px(camera, R, T, c, obj)
 
-    return alt if rms(alt) < rms(corners) else corners
+    alt = sb_accuracy_corners(gray, corners, board.pattern_size)
+    best = corners if alt is None or rms(corners) <= rms(alt) else alt
+    if not SYMMETRIC_REFINEMENT:
+        return best
+    sym = symmetric_refinement(gray, best, board, camera)
+    return sym if sym is not None and rms(sym) < rms(best) else best
+
+
+#: whether :func:`sharpest_corners` refines the corners it keeps by their point symmetry
+SYMMETRIC_REFINEMENT = False
+
+
+def symmetric_refinement(gray: np.ndarray, corners: np.ndarray, board: BoardSpec,
+                         camera: CameraModel) -> np.ndarray | None:
+    """``corners`` refined by their point symmetry on the board plane (Datta, Kim, Kanade
+    2009, :func:`lidarcal.corner_symmetry.symmetric_corners`), sampled through the
+    ``cv2.solvePnP`` pose of ``corners`` and the lens model. A corner whose window is not
+    point-symmetric or that moves by a tenth of a square keeps its position; None (the
+    caller keeps ``corners``) when the pose cannot be had or too many corners fail
+    (:meth:`lidarcal.corner_symmetry.SymmetricCorners.checked`)."""
+    c = np.asarray(corners, float).reshape(-1, 2)
+    try:
+        R, T = pose_pnp(camera, c, board.object_points())
+    except (ValueError, cv2.error):
+        return None
+    return symmetric_corners(gray, camera, R, T, board, start_px=c).checked(c)
 
 
 def _mean_square_px(corners: np.ndarray, board: BoardSpec) -> float:

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .corner_symmetry import symmetric_corners
 from .geometry import MAD_TO_SIGMA, Plane, as_points
 from .io.dataset import BoardSpec, CameraModel, DatasetError, read_image
 
@@ -330,7 +331,8 @@ def _gray(image: np.ndarray) -> np.ndarray:
 
 def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
                          image_size: tuple[int, int] | None = None,
-                         fix_k3: bool | None = None, sharpest: bool = True) -> IntrinsicsResult:
+                         fix_k3: bool | None = None, sharpest: bool = True,
+                         symmetric: bool | None = None) -> IntrinsicsResult:
     """Zhang's calibration of K and (k1, k2, p1, p2, k3) from chessboard views.
 
     Each view's corners come from :func:`detect_chessboard`; views where the
@@ -387,9 +389,37 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
         img_pts, n_sb = _sharpest_views(used, img_pts, obj_pts, res[0], board.pattern_size, size)
         if n_sb:
             res = _calibrate(img_pts, obj_pts, size, flags)
+    if symmetric is None:
+        symmetric = SYMMETRIC_PHOTOS
+    if symmetric:
+        img_pts, n_sym = _symmetric_views(used, img_pts, board, res, size)
+        if n_sym:
+            res = _calibrate(img_pts, obj_pts, size, flags)
     camera, per_view, rvecs, tvecs = res
     return IntrinsicsResult(camera, per_view, tuple(used), tuple(rejected), tuple(img_pts),
                             tuple(obj_pts), flags, rvecs, tvecs, heldout)
+
+
+#: whether :func:`calibrate_intrinsics` refines the photos' corners by their point symmetry
+#: (:func:`_symmetric_views`) by default
+SYMMETRIC_PHOTOS = False
+
+
+def _symmetric_views(paths: list[Path], img_pts: list[np.ndarray], board: BoardSpec,
+                     res: tuple, size: tuple[int, int]) -> tuple[list[np.ndarray], int]:
+    """Each view's corners refined by their point symmetry on the board (Datta, Kim, Kanade
+    2009: sampled through the view's pose and the lens of the calibration ``res``,
+    :func:`lidarcal.corner_symmetry.symmetric_corners`); a view keeps its corners where the
+    refinement's checks fail. Returns the corners and how many views were refined."""
+    camera, _, rvecs, tvecs = res
+    out, n = [], 0
+    for p, q, rv, tv in zip(paths, img_pts, rvecs, tvecs):
+        q = np.asarray(q, float).reshape(-1, 2)
+        sym = symmetric_corners(read_image(p, size), camera, cv2.Rodrigues(rv)[0],
+                                np.asarray(tv, float).ravel(), board, start_px=q).checked(q)
+        out.append(q if sym is None else sym)
+        n += sym is not None
+    return out, n
 
 
 def _sharpest_views(paths: list[Path], img_pts: list[np.ndarray], obj_pts: list[np.ndarray],
