@@ -51,7 +51,7 @@ def test_edge_strips_are_point_symmetric() -> None:
 @pytest.mark.parametrize("seed,yaw_deg", [(0, 8.0), (1, -15.0)])
 def test_symmetric_corners_against_truth(seed: int, yaw_deg: float) -> None:
     """On the rendered V (1.5 DN noise, 0.75 px PSF, distorted lens), the refinement brings
-    the detector's corners closer to truth (measured: 0.013-0.015 px -> 0.006-0.008 px);
+    the detector's corners closer to truth (measured on seeds 0-3: 0.013-0.015 px -> 0.005 px);
     it lands there from corners 0.3 px off and from a pose 0.3 deg off too (the pose only
     lays out the samples); it refuses a blank image; a detection one square off shows in the
     outer column, whose windows straddle the board's edge (asymmetry measured 0.13-1.3
@@ -83,7 +83,8 @@ def test_symmetric_corners_against_truth(seed: int, yaw_deg: float) -> None:
 def test_symmetric_photos_against_truth() -> None:
     """The bundled rig's intrinsics photos: ``calibrate_intrinsics(symmetric=True)`` refines
     every view's corners through that view's pose and recalibrates; the corners come closer
-    to the true ones (measured 0.025 -> 0.012 px rms) and the camera's rays no further."""
+    to the true ones (measured 0.024 -> 0.007 px rms) and so do the camera's rays (mean
+    direction error 0.027 -> 0.007 deg)."""
     from lidarcal.evaluate import ray_direction_error_deg
 
     ds = load_dataset(REPO / "data" / "paper_rig")
@@ -105,4 +106,4 @@ def test_symmetric_photos_against_truth() -> None:
         rms[sym] = float(np.sqrt(np.mean(np.sum(E ** 2, axis=1))))
         ray[sym] = float(ray_direction_error_deg(res.camera, tcam).mean())
     assert rms[True] < 0.7 * rms[False]
-    assert ray[True] <= ray[False] * 1.1 + 1e-4
+    assert ray[True] < ray[False]
