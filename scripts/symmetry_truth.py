@@ -5,8 +5,9 @@ Datta, Kim, Kanade (2009) refinement as ``find_v_boards`` applies it
 corners ``sharpest_corners`` keeps without it (detector or SB accuracy): corner RMS (px)
 against the true projections, the V planes' solvePnP errors (normal deg, offset mm), with
 the camera ``calibrate`` uses (dataset.json's, or the intrinsics photos plus the V's boards
-by :func:`lidarcal.pipeline.camera_for`, itself with and without the refinement) and with
-the true camera; and the refinement's CPU time per board.png (both boards, best of 5).
+by :func:`lidarcal.pipeline.camera_for`, itself with and without the refinement of the V's
+and of the photos' corners) and with the true camera; and the refinement's CPU time per
+board.png (both boards, best of 5).
 
     .venv/bin/python scripts/symmetry_truth.py /tmp/w37 [/tmp/w39 ...]
 """
@@ -22,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 import lidarcal.board as board_mod
+import lidarcal.camera as camera_mod
 from lidarcal.board import find_v_boards, plane_from_pose, pose_pnp, symmetric_refinement
 from lidarcal.camera import _gray, project_points
 from lidarcal.evaluate import plane_error, truth_board_planes, truth_camera
@@ -30,13 +32,14 @@ from lidarcal.pipeline import camera_for
 
 
 def with_refinement(refine: bool, f, *args):
-    """``f(*args)`` with ``sharpest_corners``' symmetric refinement switched on or off."""
-    keep = board_mod.SYMMETRIC_REFINEMENT
-    board_mod.SYMMETRIC_REFINEMENT = refine
+    """``f(*args)`` with the symmetric refinement of the V's corners (``sharpest_corners``)
+    and of the intrinsics photos' corners (``calibrate_intrinsics``) switched on or off."""
+    keep = board_mod.SYMMETRIC_REFINEMENT, camera_mod.SYMMETRIC_PHOTOS
+    board_mod.SYMMETRIC_REFINEMENT = camera_mod.SYMMETRIC_PHOTOS = refine
     try:
         return f(*args)
     finally:
-        board_mod.SYMMETRIC_REFINEMENT = keep
+        board_mod.SYMMETRIC_REFINEMENT, camera_mod.SYMMETRIC_PHOTOS = keep
 
 
 def refinement_cpu_s(gray: np.ndarray, views, ds, cam) -> float:
