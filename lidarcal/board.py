@@ -409,7 +409,7 @@ def sharpest_corners(gray: np.ndarray, corners: np.ndarray, board: BoardSpec,
     bundled rig; harsh 61, 62): corner RMS against truth 0.040 -> 0.020 px on average (better
     on all 22 boards), the PnP normals with the true camera 0.0043 -> 0.0029 deg; the joint
     pose function's mean centre error over the 11 rigs 0.117 -> 0.106 mm (z 0.0030 -> 0.0027,
-    x 0.0094 -> 0.0091 deg), no rig worse by more than a fifth of its own 1-sigma; 0.03 s CPU
+    x 0.0094 -> 0.0091 deg), no rig worse by more than 0.2 of its own 1-sigma; 0.04 s CPU
     per board.png on the bundled rig."""
     obj = board.object_points()
 

@@ -405,7 +405,7 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
 #: px from truth, the camera's mean ray error 0.010/0.012/0.014/0.008/0.010 ->
 #: 0.002/0.005/0.003/0.008/0.008 deg, the pose function's centre 0.075/0.121/0.140/0.233/0.365
 #: -> 0.059/0.130/0.132/0.239/0.293 mm and its z/x axes 0.0054/0.0169 -> 0.0029/0.0132 deg on
-#: average (no rig worse by more than a fifth of its 1-sigma); no measurable CPU (the photos
+#: average (no rig worse by more than 0.2 of its 1-sigma); no measurable CPU (the photos
 #: are decoded once for both choices). On the bundled rig's 12 photos: 0.024 -> 0.007 px, ray
 #: error 0.027 -> 0.007 deg. OpenCV's sample photos (640 x 480 JPEG) fail its checks and keep
 #: their corners.
