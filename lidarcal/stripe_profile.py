@@ -210,7 +210,12 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
 def _principal_direction(q: np.ndarray) -> np.ndarray:
     """Unit direction of largest spread of centred 2D points (N, 2): the first principal
     axis (the leading right singular vector), in closed form from the 2 x 2 scatter."""
-    sxx, syy, sxy = q[:, 0] @ q[:, 0], q[:, 1] @ q[:, 1], q[:, 0] @ q[:, 1]
+    return _principal_direction_xy(q[:, 0], q[:, 1])
+
+
+def _principal_direction_xy(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """:func:`_principal_direction` of the points ``(dx, dy)`` given as two coordinate arrays."""
+    sxx, syy, sxy = dx @ dx, dy @ dy, dx @ dy
     a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
     return np.array([np.cos(a), np.sin(a)])
 
@@ -673,6 +678,7 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         xy = undistort_pixels(camera, pts)
         f = float(np.mean(np.diag(camera.K)[:2]))
         keep &= np.all(np.isfinite(xy), axis=1)
+        u, v = np.ascontiguousarray(xy.T)  # the two coordinates, each contiguous
     else:
         xy, f = pts, 1.0
     r = np.zeros(n)
@@ -680,10 +686,10 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         if keep.sum() < 5:
             break
         if camera is not None:
-            q = xy[keep]
-            c = q.mean(0)
-            t = _principal_direction(q - c)
-            r = ((xy - c) @ np.array([-t[1], t[0]])) * f
+            uk, vk = u[keep], v[keep]
+            cu, cv = uk.mean(), vk.mean()
+            t = _principal_direction_xy(uk - cu, vk - cv)
+            r = ((v - cv) * t[0] - (u - cu) * t[1]) * f  # distance from the line, x f
         else:
             c = pts[keep].mean(0)
             t = _principal_direction(pts[keep] - c)
