@@ -190,13 +190,13 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         P = np.column_stack([xs, ys]).astype(float)
     if scale != 1.0:
         P = scale * P + 0.5 * (scale - 1)
+    x, y = np.ascontiguousarray(P.T)  # the two coordinates, each contiguous
     keep = np.ones(len(P), bool)
     for _ in range(3):
-        q = P[keep]
-        c = q.mean(0)
-        t = _principal_direction(q - c)
-        nrm = np.array([-t[1], t[0]])
-        r = (P - c) @ nrm
+        xk, yk = x[keep], y[keep]
+        c = np.array([xk.mean(), yk.mean()])
+        t = _principal_direction_xy(xk - c[0], yk - c[1])
+        r = (y - c[1]) * t[0] - (x - c[0]) * t[1]  # distance from the line
         s = MAD_TO_SIGMA * _median(np.abs(r[keep]))
         new = np.abs(r) <= max(3 * s, 2.0)
         if np.count_nonzero(new) < 10:
