@@ -146,12 +146,12 @@ def fit_line_2d(points: np.ndarray) -> Line2D:
     p = np.asarray(points, dtype=float)
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
         raise ValueError(f"A line needs points with shape (N >= 2, 2), got {p.shape}")
-    c = p.sum(0) / len(p)
-    q = p - c
-    x, y = q[:, 0], q[:, 1]
-    a = 0.5 * np.arctan2(2.0 * float(x @ y), float(x @ x) - float(y @ y))
+    x, y = p.T
+    cx, cy = x.sum() / len(p), y.sum() / len(p)  # the centroid
+    dx, dy = x - cx, y - cy  # centred, each contiguous
+    a = 0.5 * np.arctan2(2.0 * float(dx @ dy), float(dx @ dx) - float(dy @ dy))
     n = np.array([-np.sin(a), np.cos(a)])
-    return Line2D(n, float(n @ c))
+    return Line2D(n, float(n[0] * cx + n[1] * cy))
 
 
 def _median(v: np.ndarray) -> float:

@@ -125,12 +125,26 @@ def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
         h, w = small.shape
         msmall = _derived(mask, "halved", lambda: mask[:2 * h:2, :2 * w:2]
                           & mask[1:2 * h:2, 1:2 * w:2])
-        found = _bright_line(cv2.GaussianBlur(small, (0, 0), 0.75), msmall, noise, scale=2.0)
+        found = _bright_line(_gaussian_blur(small, 0.75), msmall, noise, scale=2.0)
         if found is not None:
             return found
     if raw8 is not None:
-        return _bright_line(cv2.GaussianBlur(raw8, (0, 0), 1.5), mask, noise)
-    return _bright_line(cv2.GaussianBlur(img, (0, 0), 1.5), mask, noise)
+        return _bright_line(_gaussian_blur(raw8, 1.5), mask, noise)
+    return _bright_line(_gaussian_blur(img, 1.5), mask, noise)
+
+
+#: Kernel sizes for ``cv2.GaussianBlur`` of uint8 images that give the very result of the
+#: size OpenCV derives from sigma (``round(6 sigma + 1) | 1``: 7 and 11 px): their outer
+#: taps round to 0 in OpenCV's bit-exact 8-bit fixed-point kernel, but cost as much as the
+#: others (half the blur's time for sigma 0.75). tests/test_stripe_kernels.py checks it.
+_UINT8_BLUR_KSIZE = {0.75: 5, 1.5: 9}
+
+
+def _gaussian_blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    """``cv2.GaussianBlur(img, (0, 0), sigma)``, with the smaller equal kernel of
+    :data:`_UINT8_BLUR_KSIZE` on uint8 images."""
+    k = _UINT8_BLUR_KSIZE.get(sigma, 0) if img.dtype == np.uint8 else 0
+    return cv2.GaussianBlur(img, (k, k), sigma)
 
 
 def _halved(img: np.ndarray) -> np.ndarray:
@@ -176,13 +190,13 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         P = np.column_stack([xs, ys]).astype(float)
     if scale != 1.0:
         P = scale * P + 0.5 * (scale - 1)
+    x, y = np.ascontiguousarray(P.T)  # the two coordinates, each contiguous
     keep = np.ones(len(P), bool)
     for _ in range(3):
-        q = P[keep]
-        c = q.mean(0)
-        t = _principal_direction(q - c)
-        nrm = np.array([-t[1], t[0]])
-        r = (P - c) @ nrm
+        xk, yk = x[keep], y[keep]
+        c = np.array([xk.mean(), yk.mean()])
+        t = _principal_direction_xy(xk - c[0], yk - c[1])
+        r = (y - c[1]) * t[0] - (x - c[0]) * t[1]  # distance from the line
         s = MAD_TO_SIGMA * _median(np.abs(r[keep]))
         new = np.abs(r) <= max(3 * s, 2.0)
         if np.count_nonzero(new) < 10:
@@ -196,7 +210,12 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
 def _principal_direction(q: np.ndarray) -> np.ndarray:
     """Unit direction of largest spread of centred 2D points (N, 2): the first principal
     axis (the leading right singular vector), in closed form from the 2 x 2 scatter."""
-    sxx, syy, sxy = q[:, 0] @ q[:, 0], q[:, 1] @ q[:, 1], q[:, 0] @ q[:, 1]
+    return _principal_direction_xy(q[:, 0], q[:, 1])
+
+
+def _principal_direction_xy(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """:func:`_principal_direction` of the points ``(dx, dy)`` given as two coordinate arrays."""
+    sxx, syy, sxy = dx @ dx, dy @ dy, dx @ dy
     a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
     return np.array([np.cos(a), np.sin(a)])
 
@@ -659,6 +678,7 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         xy = undistort_pixels(camera, pts)
         f = float(np.mean(np.diag(camera.K)[:2]))
         keep &= np.all(np.isfinite(xy), axis=1)
+        u, v = np.ascontiguousarray(xy.T)  # the two coordinates, each contiguous
     else:
         xy, f = pts, 1.0
     r = np.zeros(n)
@@ -666,10 +686,10 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         if keep.sum() < 5:
             break
         if camera is not None:
-            q = xy[keep]
-            c = q.mean(0)
-            t = _principal_direction(q - c)
-            r = ((xy - c) @ np.array([-t[1], t[0]])) * f
+            uk, vk = u[keep], v[keep]
+            cu, cv = uk.mean(), vk.mean()
+            t = _principal_direction_xy(uk - cu, vk - cv)
+            r = ((v - cv) * t[0] - (u - cu) * t[1]) * f  # distance from the line, x f
         else:
             c = pts[keep].mean(0)
             t = _principal_direction(pts[keep] - c)

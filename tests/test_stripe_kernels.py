@@ -147,3 +147,20 @@ def test_closed_form_directions_match_the_svd(seed) -> None:
     line = fit_line_2d(p)
     assert abs(abs(line.normal @ vt[1]) - 1) < 1e-12
     assert np.allclose(np.abs(line.distance(p)), np.abs((p - p.mean(0)) @ vt[1]), atol=1e-9)
+
+
+@pytest.mark.parametrize("sigma", sorted(sp._UINT8_BLUR_KSIZE))
+def test_uint8_blur_kernel_sizes_give_opencvs_own_result(sigma) -> None:
+    """The smaller uint8 kernels of ``_gaussian_blur`` change no pixel: on full-range noise
+    (every tap shows) and on an impulse, the result equals OpenCV's size from sigma."""
+    rng = np.random.default_rng(7)
+    noise = rng.integers(0, 256, (157, 211)).astype(np.uint8)
+    impulse = np.zeros((31, 31), np.uint8)
+    impulse[15, 15] = 255
+    for img in (noise, impulse):
+        assert np.array_equal(sp._gaussian_blur(img, sigma),
+                              sp.cv2.GaussianBlur(img, (0, 0), sigma))
+    # a smaller kernel still would not be the same blur: the sizes are the smallest ones
+    k = sp._UINT8_BLUR_KSIZE[sigma] - 2
+    assert not np.array_equal(sp.cv2.GaussianBlur(noise, (k, k), sigma),
+                              sp.cv2.GaussianBlur(noise, (0, 0), sigma))
