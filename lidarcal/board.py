@@ -17,7 +17,6 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from .camera import (
     detect_chessboard,
@@ -28,7 +27,7 @@ from .camera import (
 )
 from .corner_symmetry import symmetric_corners
 from .geometry import MAD_TO_SIGMA, Plane, as_points, nearest_rotation
-from .io.dataset import BoardSpec, CameraModel
+from .io.dataset import BoardSpec, CameraModel, Dataset, DatasetError, read_image
 
 
 @dataclass(frozen=True)
@@ -172,6 +171,8 @@ def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         M = np.append(h, Hn.ravel()[8]).reshape(3, 3)
         q = np.column_stack([a, np.ones(n)]) @ M.T
         return (q[:, :2] / q[:, 2:] - b).ravel()
+
+    from scipy.optimize import least_squares  # here: finding the V's boards needs no scipy
 
     sol = least_squares(resid, Hn.ravel()[:8], method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     Hn = np.append(sol.x, Hn.ravel()[8]).reshape(3, 3)
@@ -466,3 +467,16 @@ def _check_distinct(a: BoardView, b: BoardView, board: BoardSpec) -> None:
     if np.linalg.norm(a.centroid_px - b.centroid_px) < 2 * side or inside > 0:
         raise ValueError("the second chessboard found is the first one again; "
                          "the two boards of the V must both be fully visible")
+
+
+def find_boards(ds: Dataset, camera: CameraModel, image: np.ndarray | None = None
+                ) -> tuple[BoardView, BoardView]:
+    """Both chessboards of the V in ``board.png`` (section 1.2); ``image``: that file
+    already decoded (:func:`lidarcal.io.dataset.read_image`), else it is read here.
+    A board not found is a :class:`~lidarcal.io.dataset.DatasetError` naming ``board.png``."""
+    img = read_image(ds.board_image, camera.image_size) if image is None else image
+    try:
+        return find_v_boards(img, ds.v_board, camera)
+    except ValueError as e:
+        raise DatasetError(ds.board_image, f"{e}; both boards must be fully "
+                                           "in view") from None

@@ -370,22 +370,53 @@ def _imports_without_gc():
         gc.enable()
 
 
+@contextmanager
+def _importing_in_background(module: str):
+    """Import ``module`` in a thread while the block runs; joined when the block is left
+    (result or error), so no thread outlives it. An import error is left for the caller's
+    own import of ``module`` to raise, with its traceback."""
+    import importlib
+    import threading
+
+    def target() -> None:
+        try:
+            importlib.import_module(module, __package__)
+        except BaseException:  # noqa: BLE001  (re-raised by the caller's import)
+            pass
+
+    t = threading.Thread(target=target, name=f"import {module}")
+    t.start()
+    try:
+        yield
+    finally:
+        t.join()
+
+
 def _cmd_calibrate(a: argparse.Namespace) -> int:
     from .io.dataset import ImagePrefetch, load_dataset
 
     ds = load_dataset(a.dataset)
     mark("dataset")
     skip = set(a.skip)
-    # decode the stripe images in a background thread while the heavier modules import;
-    # leaving the block (result or error) stops and joins it before anything is printed
+    # the stripe images decode in a background thread while the heavier modules (scipy)
+    # import in another; the boards of board.png, which need neither, are found meanwhile
+    # (OpenCV releases the GIL). Leaving a block (result or error) stops and joins its thread
+    # before anything is printed
     with ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size,
                        laser_colour=ds.lidar.laser_colour) as images:
+        boards = None
         with _imports_without_gc():
+            with _importing_in_background(".pipeline"):
+                if ds.camera is not None:  # else the camera comes from intrinsics/ first
+                    from .board import find_boards
+
+                    boards = find_boards(ds, ds.camera)
+                    mark("early-boards")
             from .pipeline import calibrate, write_calibration
         mark("imports")
         res = calibrate(ds, skip=a.skip, strict=a.strict,
                         progress=not a.no_progress and sys.stderr.isatty(), method=a.method,
-                        images=images, fit_planes=a.fit_planes)
+                        images=images, fit_planes=a.fit_planes, boards=boards)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     mark("calibrated")

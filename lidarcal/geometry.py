@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 #: Median absolute deviation -> standard deviation for Gaussian noise (1 / Phi^-1(3/4)).
 MAD_TO_SIGMA = 1.4826
@@ -295,6 +294,8 @@ def fit_circle_2d(points: np.ndarray, weights: np.ndarray | None = None) -> tupl
         return w * (np.hypot(q[:, 0] - x[0], q[:, 1] - x[1]) - x[2])
 
     x0 = np.array([*(c0 - m) / s, r0 / s])
+    from scipy.optimize import least_squares  # here: finding the V's boards needs no scipy
+
     sol = least_squares(res, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     return sol.x[:2] * s + m, float(abs(sol.x[2]) * s)
 

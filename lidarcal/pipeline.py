@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import __version__
-from .board import BoardView, find_v_boards
+from .board import BoardView, find_boards, find_v_boards
 from .camera import IntrinsicsResult, add_views, calibrate_intrinsics
 from .geometry import Pose
 from .io.dataset import (
@@ -247,22 +247,11 @@ def _rho_picks(positions: list[Position], n_images: int = 5) -> list[int]:
     return sorted({round(k) for k in ks})
 
 
-def find_boards(ds: Dataset, camera: CameraModel, image: np.ndarray | None = None
-                ) -> tuple[BoardView, BoardView]:
-    """Both chessboards of the V in ``board.png`` (section 1.2); ``image``: that file
-    already decoded (:func:`lidarcal.io.dataset.read_image`), else it is read here."""
-    img = read_image(ds.board_image, camera.image_size) if image is None else image
-    try:
-        return find_v_boards(img, ds.v_board, camera)
-    except ValueError as e:
-        raise DatasetError(ds.board_image, f"{e}; both boards must be fully "
-                                           "in view") from None
-
-
 def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),
               strict: bool = False, method: str = DEFAULT_METHOD, progress: bool = False,
               workers: int | None = None, images: ImagePrefetch | None = None,
-              skip_failed: bool | None = None, fit_planes: bool = False) -> CalibrationResult:
+              skip_failed: bool | None = None, fit_planes: bool = False,
+              boards: tuple[BoardView, BoardView] | None = None) -> CalibrationResult:
     """Run sections 1 and 2 of the paper on a dataset folder.
 
     ``method`` picks the pose function that fills ``poses``: "joint" (the joint
@@ -282,6 +271,10 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     by default they are decoded in a background thread while the boards are found. Either
     way the decoding stops (:meth:`~lidarcal.io.dataset.ImagePrefetch.close`) before the
     positions are solved; the images not decoded by then are read by the workers.
+    ``boards``: the V's two boards already found in ``board.png`` with the dataset's stored
+    camera (:func:`lidarcal.board.find_boards` with ``ds.camera``, as ``lidarcal calibrate``
+    does while the heavier modules import); ignored when the camera comes from
+    ``intrinsics/`` (the boards are then found with the camera fitted here).
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -302,7 +295,8 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     try:
         camera, intr = camera_for(ds)
         mark("camera")
-        boards = find_boards(ds, camera)
+        if boards is None or ds.camera is None:
+            boards = find_boards(ds, camera)
         mark("boards")
         _WORKER["images"] = images  # an image not decoded yet is read on demand
         # the stripe's reflectance ratio (a few images) while the last images are decoded

@@ -42,9 +42,11 @@ PHASES = {  # the main thread's mark -> what ran since the previous one
     "cli": "import lidarcal.io.dataset (cv2)",
     "args": "argparse",
     "dataset": "load_dataset",
-    "imports": "import lidarcal.pipeline (scipy); decode thread starts",
+    "early-boards": "both chessboards of the V (board.png, stored camera) while scipy imports "
+                    "in a thread; decode thread starts",
+    "imports": "import lidarcal.pipeline (scipy; the rest of it after the early boards)",
     "camera": "camera (dataset.json or intrinsics/)",
-    "boards": "both chessboards of the V (board.png)",
+    "boards": "both chessboards of the V (board.png) when not found early",
     "rho": "stripe reflectance ratio (5 images)",
     "decode-stopped": "decode thread stopped and joined",
     "positions": "pool fork + every position (2 workers)",
