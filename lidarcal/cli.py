@@ -12,7 +12,7 @@ import gc
 import os
 import sys
 import traceback
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 from .trace import mark
@@ -379,10 +379,8 @@ def _importing_in_background(module: str):
     import threading
 
     def target() -> None:
-        try:
+        with suppress(Exception):  # raised again, with its traceback, by the caller's import
             importlib.import_module(module, __package__)
-        except BaseException:  # noqa: BLE001  (re-raised by the caller's import)
-            pass
 
     t = threading.Thread(target=target, name=f"import {module}")
     t.start()
