@@ -413,7 +413,9 @@ def saddle_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
 def _bilinear_patches(img: np.ndarray, centres: np.ndarray, w: int) -> np.ndarray:
     """Bilinear samples (n, 2w+1, 2w+1) of ``img`` on the pixel grid offsets -w..w around each
     centre (n, 2) (x, y); indices beyond the image repeat its edge. All samples of a patch
-    share the centre's fractional part, so one (2w+2)^2 integer patch and four weights do."""
+    share the centre's fractional part, so one (2w+2)^2 integer patch and four weights do.
+    Exact weights, not ``cv2.remap``'s: it rounds every sample position to 1/32 px, as
+    large as the saddle shifts being measured."""
     base = np.floor(centres).astype(int)
     f = (centres - base)[:, :, None, None]
     r = np.arange(-w, w + 2)

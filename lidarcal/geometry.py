@@ -228,11 +228,37 @@ class Pose:
         return Pose(np.asarray(d["R"], dtype=float), np.asarray(d["T_mm"], dtype=float))
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` of vectors ``v`` (..., 3): (..., 3, 3), with ``[v]x u = v x u``."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
 def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:
     """Rotation matrix by ``angle`` (rad) about unit ``axis``, right-handed (Rodrigues)."""
-    k = unit(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    K = skew(unit(axis))
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """``Exp(w)``: the rotation matrix of the rotation vector ``w`` (3,), rad (Rodrigues;
+    the identity at 0)."""
+    angle = float(np.linalg.norm(w))
+    return np.eye(3) if angle == 0.0 else rotation_about_axis(w, angle)
+
+
+def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """SO(3)'s left Jacobian ``J_l(w) = I + (1 - cos th)/th^2 [w]x + (th - sin th)/th^3
+    [w]x^2`` (``th = |w|``; its series to second order below 1e-6 rad): with ``R = Exp(w) R0``,
+    ``d(R v)/dw = -[R v]x J_l(w)``."""
+    W = skew(w)
+    th = float(np.linalg.norm(w))
+    if th < 1e-6:
+        return np.eye(3) + 0.5 * W + W @ W / 6.0
+    return np.eye(3) + (1 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
 
 
 def rotate_perpendicular(v: np.ndarray, axis: np.ndarray, angle: float | np.ndarray) -> np.ndarray:

@@ -41,6 +41,9 @@ from .geometry import (
     fit_plane,
     plane_basis,
     rotate_perpendicular,
+    rotvec_matrix,
+    skew,
+    so3_left_jacobian,
     unit,
 )
 
@@ -484,16 +487,11 @@ def _rigid_predict(x: np.ndarray, base: tuple, t: np.ndarray):
     k0, B0, a0, R0, T0 = base
     k = unit(k0 + x[:2] @ B0)
     a = a0 + x[2:4] @ B0
-    R_ref = _rotvec_matrix(x[4:7]) @ R0
+    R_ref = rotvec_matrix(x[4:7]) @ R0
     T_ref = T0 + x[7:10]
     c, s = np.cos(t)[:, None], np.sin(t)[:, None]
     turn = lambda v: _rodrigues(v, k, c, s)
     return a + turn(T_ref - a), turn(R_ref[:, 2]), turn(R_ref[:, 0]), (k, a, R_ref, T_ref)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]_x`` (3, 3): ``[v]_x u = v x u``."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _rigid_jacobian(x: np.ndarray, base: tuple, t: np.ndarray) -> np.ndarray:
@@ -511,22 +509,16 @@ def _rigid_jacobian(x: np.ndarray, base: tuple, t: np.ndarray) -> np.ndarray:
     k = m / norm_m
     a = a0 + x[2:4] @ B0
     w = x[4:7]
-    R_ref = _rotvec_matrix(w) @ R0
+    R_ref = rotvec_matrix(w) @ R0
     T_ref = T0 + x[7:10]
     c, s = np.cos(t)[:, None, None], np.sin(t)[:, None, None]
     kkT = np.outer(k, k)
-    Q = c * np.eye(3) + s * _skew(k) + (1.0 - c) * kkT  # (N, 3, 3)
+    Q = c * np.eye(3) + s * skew(k) + (1.0 - c) * kkT  # (N, 3, 3)
     dk = (np.eye(3) - kkT) @ B0.T / norm_m  # (3, 2)
-    angle = float(np.sqrt(w @ w))
-    if angle < 1e-8:
-        J_l = np.eye(3) + 0.5 * _skew(w)
-    else:
-        W = _skew(w)
-        J_l = (np.eye(3) + (1.0 - np.cos(angle)) / angle**2 * W
-               + (angle - np.sin(angle)) / angle**3 * (W @ W))
+    J_l = so3_left_jacobian(w)
 
     def d_turn_dk(v: np.ndarray) -> np.ndarray:  # (N, 3, 2)
-        D = -s * _skew(v) + (1.0 - c) * ((k @ v) * np.eye(3) + np.outer(k, v))
+        D = -s * skew(v) + (1.0 - c) * ((k @ v) * np.eye(3) + np.outer(k, v))
         return D @ dk
 
     J = np.zeros((len(t), 9, 10))
@@ -536,7 +528,7 @@ def _rigid_jacobian(x: np.ndarray, base: tuple, t: np.ndarray) -> np.ndarray:
     for row, col in ((3, 2), (6, 0)):
         v = R_ref[:, col]
         J[:, row:row + 3, 0:2] = d_turn_dk(v)
-        J[:, row:row + 3, 4:7] = Q @ (-_skew(v) @ J_l)
+        J[:, row:row + 3, 4:7] = Q @ (-skew(v) @ J_l)
     return J
 
 
@@ -546,16 +538,6 @@ def _rodrigues(v: np.ndarray, k: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarra
     ``v cos t + (k x v) sin t + k (k . v)(1 - cos t)``; ``cos_t``, ``sin_t`` are (N, 1).
     """
     return v * cos_t + cross3(k, v) * sin_t + (k * (k @ v)) * (1.0 - cos_t)
-
-
-def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``w`` (3,), rad (Rodrigues; identity at 0)."""
-    angle = float(np.sqrt(w @ w))
-    if angle == 0.0:
-        return np.eye(3)
-    k = w / angle
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
 
 
 def _residual_norms(pred, T, Z, X) -> np.ndarray:

@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..geometry import skew
 from ..io.dataset import CameraModel
 from .params import CORNER_FLOOR_PX, MAD_TO_SIGMA, N_BOARD
 
@@ -86,16 +87,12 @@ class PlanePrior:
             c = self.cov[6 * j:6 * j + 6, 6 * j:6 * j + 6]
             n = self.R0[j][:, 2]
             # normal n' = Rot(w) n: dn = w x n; offset d = n . T: dd = (w x n) . T + n . dT
-            Jn = -_skew(n)  # dn / dw
+            Jn = -skew(n)  # dn / dw
             Jd = np.concatenate([np.cross(n, self.T0[j]), n])  # d d / d(w, T)
             cn = Jn @ c[:3, :3] @ Jn.T
             out["normal_deg"][j] = np.degrees(np.sqrt(max(np.trace(cn), 0.0)))
             out["offset_mm"][j] = float(np.sqrt(max(Jd @ c @ Jd, 0.0)))
         return out
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _intrinsics_vector(camera: CameraModel) -> np.ndarray:

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import unit
+from ..geometry import skew, so3_left_jacobian, unit
 from .data import JointData
 from .noise import _Groups
 from .params import (
@@ -454,14 +454,6 @@ def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
     return out
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` of vectors ``v`` (..., 3): (..., 3, 3)."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
 def pose_jacobian(x: np.ndarray, base: _Base, t: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The rigid model's poses at angles ``t`` and their derivatives wrt the rig parameters
@@ -485,14 +477,14 @@ def pose_jacobian(x: np.ndarray, base: _Base, t: np.ndarray
     R, T = _poses(k, a, R_ref, T_ref, t)
     n = len(t)
     c, s = np.cos(t)[:, None, None], np.sin(t)[:, None, None]
-    kx = _skew(k)
+    kx = skew(k)
     Q = c * np.eye(3) + s * kx + (1 - c) * np.outer(k, k)
     dR = np.zeros((n, N_RIG, 3, 3))
     dT = np.zeros((n, N_RIG, 3))
     # axis direction
     k_raw = base.k + x[0:2] @ base.B
     dk = (base.B - np.outer(base.B @ k, k)) / np.linalg.norm(k_raw)  # (2, 3)
-    dQ = (s[:, None] * _skew(dk)[None]
+    dQ = (s[:, None] * skew(dk)[None]
           + (1 - c)[:, None] * (dk[:, :, None] * k[None, None, :] + k[None, :, None] * dk[:, None, :])[None])
     dR[:, 0:2] = dQ @ R_ref
     dT[:, 0:2] = dQ @ (T_ref - a)
@@ -500,13 +492,8 @@ def pose_jacobian(x: np.ndarray, base: _Base, t: np.ndarray
     dT[:, 2:4] = np.einsum("ij,nkj->nik", base.B, np.eye(3) - Q)
     # reference rotation
     w = x[4:7]
-    th = float(np.linalg.norm(w))
-    W = _skew(w)
-    if th < 1e-6:
-        Jl = np.eye(3) + 0.5 * W + W @ W / 6.0
-    else:
-        Jl = np.eye(3) + (1 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
-    dR[:, 4:7] = Q[:, None] @ (_skew(Jl.T) @ R_ref)[None]
+    Jl = so3_left_jacobian(w)
+    dR[:, 4:7] = Q[:, None] @ (skew(Jl.T) @ R_ref)[None]
     # reference centre
     dT[:, 7:10] = Q.transpose(0, 2, 1)[:, :, :]
     G = np.concatenate([dR.transpose(0, 1, 3, 2).reshape(n, N_RIG, 9), dT], 2).transpose(0, 2, 1)
