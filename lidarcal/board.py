@@ -277,7 +277,7 @@ def board_blackness(image: np.ndarray, camera: CameraModel, view: BoardView, boa
     box plus ``pad_px``. The edges keep the image's own blur, which is also
     the blur the stripe image has. Returns (crop, (x0, y0), black/white ratio).
     """
-    img = np.asarray(image, np.float32)
+    img = np.asarray(image)
     H, W = img.shape[:2]
     cols, rows = board.inner_corners
     sq = board.square_mm
@@ -288,8 +288,7 @@ def board_blackness(image: np.ndarray, camera: CameraModel, view: BoardView, boa
     parity = ((ii + jj).ravel() % 2).astype(bool)
     inside = (c[:, 0] >= 2) & (c[:, 0] < W - 2) & (c[:, 1] >= 2) & (c[:, 1] < H - 2)
     r = max(1, int(0.15 * _mean_square_px(view.corners_px, board)))
-    box = cv2.blur(img, (2 * r + 1, 2 * r + 1))
-    vals = box[np.round(c[:, 1]).astype(int).clip(0, H - 1), np.round(c[:, 0]).astype(int).clip(0, W - 1)]
+    vals = _box_means(img, np.round(c).astype(int), r)
     a, b = parity & inside, ~parity & inside
     if np.median(vals[a]) < np.median(vals[b]):
         a, b = b, a  # a = white
@@ -319,9 +318,23 @@ def board_blackness(image: np.ndarray, camera: CameraModel, view: BoardView, boa
 
     Wl, Bl = field(cw), field(cb)
     with np.errstate(invalid="ignore", divide="ignore"):
-        blk = (Wl - img[y0:y1, x0:x1]) / np.maximum(Wl - Bl, 1e-3)
+        blk = (Wl - img[y0:y1, x0:x1].astype(np.float32)) / np.maximum(Wl - Bl, 1e-3)
     ratio = float(np.median(vals[b]) / max(np.median(vals[a]), 1e-6))
     return np.clip(np.nan_to_num(blk), 0.0, 1.0).astype(np.float32), (x0, y0), ratio
+
+
+def _box_means(image: np.ndarray, at_px: np.ndarray, r: int) -> np.ndarray:
+    """Mean of ``image`` over the (2r+1)^2 box around each pixel ``at_px`` (n, 2) (x, y;
+    clipped into the image), as ``cv2.blur`` of the float image (edges reflected) gives it.
+    Only the bounding box of the points plus ``r`` is blurred: a box mean reads nothing
+    further, and the sums of integer grey levels are exact, so the values are the same."""
+    H, W = image.shape[:2]
+    x = at_px[:, 0].clip(0, W - 1)
+    y = at_px[:, 1].clip(0, H - 1)
+    x0, y0 = max(int(x.min()) - r, 0), max(int(y.min()) - r, 0)
+    x1, y1 = min(int(x.max()) + r + 1, W), min(int(y.max()) + r + 1, H)
+    crop = np.asarray(image[y0:y1, x0:x1], np.float32)
+    return cv2.blur(crop, (2 * r + 1, 2 * r + 1))[y - y0, x - x0]
 
 
 def _fill_board(gray: np.ndarray, outline_px: np.ndarray, grow_px: int) -> np.ndarray:

@@ -185,30 +185,30 @@ def grid_prediction_scaled(corners: np.ndarray, pattern_size: tuple[int, int],
     (the prediction's noise gain: larger where a corner is extrapolated, at the board's
     corners and edges), so residuals divided by it are comparable."""
     cols, rows = pattern_size
-    P = np.asarray(corners, float).reshape(rows, cols, 2)
-    ok = np.ones((rows, cols), bool) if valid is None else np.asarray(valid).reshape(rows, cols)
-    out = np.full((rows * cols, 2), np.nan)
-    scale = np.full(rows * cols, np.nan)
+    n = rows * cols
+    P = np.asarray(corners, float).reshape(n, 2)
+    ok = np.ones(n, bool) if valid is None else np.asarray(valid, bool).reshape(n)
+    out = np.full((n, 2), np.nan)
+    scale = np.full(n, np.nan)
+    # every corner's neighbourhood at once: the grid offsets within ``reach`` in row-major
+    # order (dj, then di), used where the neighbour is on the board, valid and not the corner
+    dj, di = (d.ravel() for d in np.mgrid[-reach:reach + 1, -reach:reach + 1])
+    j, i = np.divmod(np.arange(n), cols)
+    nj, ni = j[:, None] + dj, i[:, None] + di  # (n, K) neighbour rows and columns
+    on_board = (nj >= 0) & (nj < rows) & (ni >= 0) & (ni < cols)
+    nbr = np.where(on_board, nj * cols + ni, 0)
+    use = on_board & ok[nbr] & ((dj != 0) | (di != 0))
+    fitted = np.flatnonzero(use.sum(axis=1) >= 8)
     # the least-squares operator depends only on which grid offsets are used: corners with
     # the same neighbourhood (all interior ones of a clean board) share one pseudo-inverse
-    groups: dict[tuple, tuple[np.ndarray, list[int], list[np.ndarray]]] = {}
-    for j in range(rows):
-        for i in range(cols):
-            j0, j1 = max(j - reach, 0), min(j + reach + 1, rows)
-            i0, i1 = max(i - reach, 0), min(i + reach + 1, cols)
-            jj, ii = np.mgrid[j0:j1, i0:i1]
-            sel = ~((jj == j) & (ii == i)) & ok[j0:j1, i0:i1]
-            if sel.sum() < 8:
-                continue
-            uv = np.column_stack([ii[sel] - i, jj[sel] - j])
-            _, idx, ys = groups.setdefault(uv.tobytes(), (uv, [], []))
-            idx.append(j * cols + i)
-            ys.append(P[j0:j1, i0:i1][sel])
-    for uv, idx, ys in groups.values():
-        u, v = uv[:, 0].astype(float), uv[:, 1].astype(float)
+    masks, group = np.unique(use[fitted], axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    for g, m in enumerate(masks):
+        idx = fitted[group == g]
+        u, v = di[m].astype(float), dj[m].astype(float)
         A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
         # the map at (u, v) = (0, 0): the constant term of the least-squares fit
-        out[idx] = np.einsum("n,knd->kd", np.linalg.pinv(A)[0], np.stack(ys))
+        out[idx] = np.einsum("n,knd->kd", np.linalg.pinv(A)[0], P[nbr[idx][:, m]])
         scale[idx] = np.sqrt(1.0 + np.linalg.pinv(A.T @ A)[0, 0])
     return out, scale
 

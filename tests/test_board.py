@@ -355,3 +355,18 @@ def test_bilinear_patches_match_scipy() -> None:
     ref = map_coordinates(img, [centres[:, 1, None, None] + yy, centres[:, 0, None, None] + xx],
                           order=1, mode="nearest")
     assert np.max(np.abs(_bilinear_patches(img, centres, w) - ref)) < 1e-4
+
+
+@pytest.mark.parametrize("r", [1, 4, 9])
+def test_box_means_match_the_blurred_image(r: int) -> None:
+    """The blackness map's square samples (box means blurred only around the points) equal
+    ``cv2.blur`` of the whole float image at those pixels, points at and beyond the image's
+    edges included (clipped, edges reflected as OpenCV does)."""
+    from lidarcal.board import _box_means
+
+    rng = np.random.default_rng(r)
+    img = rng.integers(0, 256, (90, 130), dtype=np.uint8)
+    at = np.vstack([rng.integers(0, [130, 90], (50, 2)), [[0, 0], [129, 89], [-3, 95], [140, 2]]])
+    full = cv2.blur(img.astype(np.float32), (2 * r + 1, 2 * r + 1))
+    ref = full[at[:, 1].clip(0, 89), at[:, 0].clip(0, 129)]
+    assert np.array_equal(_box_means(img, at, r), ref)

@@ -15,6 +15,7 @@ from lidarcal.camera import (
     calibrate_intrinsics,
     corner_outliers,
     detect_chessboard,
+    grid_prediction_scaled,
     heldout_rms_px,
     local_square_px,
     view_reprojection_sq,
@@ -47,6 +48,50 @@ def test_outlier_check_finds_a_planted_corner(seed) -> None:
     moved = c.copy()
     moved[k] += 1.5 * np.array([np.cos(seed), np.sin(seed)])
     assert np.flatnonzero(corner_outliers(moved, (9, 6))).tolist() == [k]
+
+
+def _grid_prediction_per_corner(corners, pattern_size, reach=2, valid=None):
+    """The leave-one-out grid prediction written corner by corner (the loop
+    :func:`grid_prediction_scaled` replaced): a quadratic map fitted to each corner's valid
+    neighbours within ``reach`` grid steps, evaluated at the corner."""
+    cols, rows = pattern_size
+    P = np.asarray(corners, float).reshape(rows, cols, 2)
+    ok = np.ones((rows, cols), bool) if valid is None else np.asarray(valid).reshape(rows, cols)
+    out, scale = np.full((rows * cols, 2), np.nan), np.full(rows * cols, np.nan)
+    for j in range(rows):
+        for i in range(cols):
+            j0, j1 = max(j - reach, 0), min(j + reach + 1, rows)
+            i0, i1 = max(i - reach, 0), min(i + reach + 1, cols)
+            jj, ii = np.mgrid[j0:j1, i0:i1]
+            sel = ~((jj == j) & (ii == i)) & ok[j0:j1, i0:i1]
+            if sel.sum() < 8:
+                continue
+            u, v = (ii[sel] - i).astype(float), (jj[sel] - j).astype(float)
+            A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+            out[j * cols + i] = np.linalg.pinv(A)[0] @ P[j0:j1, i0:i1][sel]
+            scale[j * cols + i] = np.sqrt(1.0 + np.linalg.pinv(A.T @ A)[0, 0])
+    return out, scale
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_grid_prediction_matches_the_per_corner_fit(seed) -> None:
+    """All corners at once (grouped by neighbourhood) = each corner fitted alone, on boards
+    of several sizes with corners left out; a quadratic grid is predicted exactly."""
+    rng = np.random.default_rng(seed)
+    cols, rows = (int(v) for v in rng.integers(3, 15, 2))
+    c = _grid(seed, cols, rows) + rng.normal(0, 0.05, (rows * cols, 2))
+    valid = None if seed == 0 else rng.random(rows * cols) > 0.1 * seed
+    reach = 1 + seed % 3
+    got, gain = grid_prediction_scaled(c, (cols, rows), reach, valid)
+    ref, ref_gain = _grid_prediction_per_corner(c, (cols, rows), reach, valid)
+    assert np.array_equal(np.isnan(got), np.isnan(ref))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(gain, ref_gain, rtol=1e-12, equal_nan=True)
+    jj, ii = (g.ravel() for g in np.mgrid[0:rows, 0:cols])
+    quad = np.column_stack([3 + 20 * ii + 0.3 * ii * jj, 5 + 19 * jj - 0.2 * ii * ii]).astype(float)
+    pred, _ = grid_prediction_scaled(quad, (cols, rows), reach, valid)
+    fin = np.isfinite(pred[:, 0])
+    np.testing.assert_allclose(pred[fin], quad[fin], atol=1e-8)
 
 
 def test_local_square_size() -> None:
