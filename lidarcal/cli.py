@@ -391,17 +391,19 @@ def _importing_in_background(module: str):
 
 
 def _cmd_calibrate(a: argparse.Namespace) -> int:
-    from .io.dataset import ImagePrefetch, load_dataset
+    from .io.dataset import REFLECTANCE_IMAGES, ImagePrefetch, load_dataset, spread_indices
 
     ds = load_dataset(a.dataset)
     mark("dataset")
     skip = set(a.skip)
+    todo = [p for p in ds.positions if p.index not in skip]
     # the stripe images decode in a background thread while the heavier modules (scipy)
     # import in another; the boards of board.png, which need neither, are found meanwhile
     # (OpenCV releases the GIL). Leaving a block (result or error) stops and joins its thread
     # before anything is printed
-    with ImagePrefetch([p for p in ds.positions if p.index not in skip], ds.image_size,
-                       laser_colour=ds.lidar.laser_colour) as images:
+    # (the few images the reflectance ratio is pooled from first, as calibrate's own prefetch)
+    with ImagePrefetch(todo, ds.image_size, laser_colour=ds.lidar.laser_colour,
+                       first=spread_indices(len(todo), REFLECTANCE_IMAGES)) as images:
         boards = None
         with _imports_without_gc():
             with _importing_in_background(".pipeline"):

@@ -33,6 +33,7 @@ from .geometry import Pose
 from .io.dataset import (
     CALIBRATION_FORMAT,
     MEASUREMENTS_FORMAT,
+    REFLECTANCE_IMAGES,
     CameraModel,
     Dataset,
     DatasetError,
@@ -43,6 +44,7 @@ from .io.dataset import (
     read_image,
     read_scan,
     read_stripe_image,
+    spread_indices,
     write_json_atomic,
 )
 from .pose import single_shot_pose
@@ -223,7 +225,7 @@ def camera_for(ds: Dataset) -> tuple[CameraModel, IntrinsicsResult | None]:
 
 
 def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, BoardView],
-                              positions: list[Position], n_images: int = 5,
+                              positions: list[Position], n_images: int = REFLECTANCE_IMAGES,
                               laser_colour: str = "auto") -> float | None:
     """The stripe's black/white reflectance ratio, pooled over a few positions spread over the
     sweep (a property of board and laser, the same at every position; see
@@ -239,12 +241,10 @@ def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, Boar
     return estimate_reflectance_ratio(camera, images, boards) if images else None
 
 
-def _rho_picks(positions: list[Position], n_images: int = 5) -> list[int]:
-    """Indices of the positions spread over the sweep that the reflectance ratio is pooled from."""
-    if not positions:
-        return []
-    ks = np.linspace(0, len(positions) - 1, min(n_images, len(positions)))
-    return sorted({round(k) for k in ks})
+def _rho_picks(positions: list[Position], n_images: int = REFLECTANCE_IMAGES) -> list[int]:
+    """Indices of the positions spread over the sweep that the reflectance ratio is pooled from
+    (the prefetch decodes them first: ``ImagePrefetch(..., first=_rho_picks(positions))``)."""
+    return spread_indices(len(positions), n_images)
 
 
 def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple = (),
@@ -291,7 +291,8 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     todo = [p for p in ds.positions if p.index not in skip]
     own = images is None
     if own:
-        images = ImagePrefetch(todo, ds.image_size, laser_colour=ds.lidar.laser_colour)
+        images = ImagePrefetch(todo, ds.image_size, laser_colour=ds.lidar.laser_colour,
+                               first=_rho_picks(todo))
     try:
         camera, intr = camera_for(ds)
         mark("camera")

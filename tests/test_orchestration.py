@@ -14,10 +14,11 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 from conftest import bundled_dataset
 
 from lidarcal.cli import main
-from lidarcal.io.dataset import ImagePrefetch, load_dataset
+from lidarcal.io.dataset import ImagePrefetch, load_dataset, read_stripe_image, spread_indices
 from lidarcal.pipeline import calibrate, dataset_hash
 
 
@@ -39,6 +40,32 @@ def test_positions_are_solved_alike_however_their_images_arrive(tmp_path):
     assert _samples(by_workers) == _samples(default)
     assert _samples(serial) == _samples(default)
     assert default.model.axis.direction.tobytes() == serial.model.axis.direction.tobytes()
+
+
+def test_prefetch_decodes_the_images_asked_for_first(tmp_path):
+    """``first`` images are decoded before the others: with room for only two images, those
+    two (and no other) are held, as their own decoding reads them."""
+    ds = load_dataset(bundled_dataset(tmp_path / "ds", n=8))
+    w, h = ds.image_size
+    with ImagePrefetch(ds.positions, ds.image_size, max_bytes=2 * w * h,
+                       laser_colour=ds.lidar.laser_colour, first=[5, 2, 5, 99]) as pre:
+        pre.join()
+        held = [p.index for p in ds.positions if pre.get(p) is not None]
+        assert held == [ds.positions[2].index, ds.positions[5].index]
+        ref = read_stripe_image(ds.positions[5].stripe_image, ds.image_size,
+                                ds.lidar.laser_colour)
+        assert np.array_equal(pre.get(ds.positions[5]), ref)
+
+
+def test_spread_indices():
+    """Both ends, evenly spaced, distinct, at most k (all of a short list)."""
+    assert spread_indices(87, 5) == [0, 22, 43, 64, 86]
+    assert spread_indices(3, 5) == [0, 1, 2]
+    assert spread_indices(1, 5) == [0]
+    assert spread_indices(0, 5) == []
+    got = spread_indices(40, 7)
+    assert got[0] == 0 and got[-1] == 39 and len(set(got)) == 7
+    assert max(np.diff(got)) - min(np.diff(got)) <= 1
 
 
 def test_main_in_process_leaves_the_garbage_collector_as_found(small_dataset, tmp_path):

@@ -14,7 +14,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -29,6 +29,10 @@ DATASET_FORMAT = "lidarcal-dataset/1"
 CALIBRATION_FORMAT = "lidarcal-calibration/1"
 MEASUREMENTS_FORMAT = "lidarcal-measurements/1"
 DEFAULT_Z_AXIS_HINT = (0.0, -1.0, 0.0)
+#: stripe images, spread over the sweep (:func:`spread_indices`), that ``calibrate`` pools the
+#: stripe's reflectance ratio from before its workers fork
+#: (:func:`lidarcal.pipeline.dataset_reflectance_ratio`); its prefetch decodes them first
+REFLECTANCE_IMAGES = 5
 
 
 class DatasetError(Exception):
@@ -429,6 +433,14 @@ def read_stripe_image(path: Path, image_size: tuple[int, int] | None = None,
     return _checked_size(laser_response(img[:, :, :3], laser_colour), path, image_size)
 
 
+def spread_indices(n: int, k: int) -> list[int]:
+    """At most ``k`` distinct indices of ``range(n)`` spread evenly over it, both ends
+    included (``np.linspace`` rounded), ascending."""
+    if n <= 0 or k <= 0:
+        return []
+    return sorted({round(v) for v in np.linspace(0, n - 1, min(k, n))})
+
+
 class ImagePrefetch:
     """Stripe images decoded by a background thread while the caller does other work.
 
@@ -437,6 +449,9 @@ class ImagePrefetch:
     on demand; an unreadable image is kept as its :class:`DatasetError`, raised by
     :meth:`get` (so the caller's per-position error policy applies unchanged).
     Call :meth:`join` before forking worker processes (they then share the images).
+
+    ``first``: indices into ``positions`` decoded before the others (e.g. the few images the
+    caller reads before it forks, :func:`spread_indices`), so it need not decode them itself.
 
     Use it as a context manager (or call :meth:`close`): on leaving, decoding stops
     after the image in hand and the thread is joined, so no thread is left inside
@@ -451,7 +466,8 @@ class ImagePrefetch:
     """
 
     def __init__(self, positions: list[Position], image_size: tuple[int, int] | None,
-                 max_bytes: float = 1 << 30, laser_colour: str = "auto"):
+                 max_bytes: float = 1 << 30, laser_colour: str = "auto",
+                 first: Sequence[int] = ()):
         import threading
 
         self._images: dict[int, np.ndarray | DatasetError] = {}
@@ -460,7 +476,10 @@ class ImagePrefetch:
         n_max = len(positions)
         if image_size is not None:
             n_max = int(max_bytes // max(image_size[0] * image_size[1], 1))
-        self._todo = positions[:n_max]
+        # ``first`` (indices into ``positions``) are decoded before the others, in that order
+        head = list(dict.fromkeys(k for k in first if 0 <= k < len(positions)))
+        order = head + sorted(set(range(len(positions))) - set(head))
+        self._todo = [positions[k] for k in order[:n_max]]
         self._block = None if image_size is None or not self._todo else \
             np.empty((len(self._todo), image_size[1], image_size[0]), np.uint8)
         self._stop = threading.Event()
