@@ -413,7 +413,8 @@ def saddle_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
 def _bilinear_patches(img: np.ndarray, centres: np.ndarray, w: int) -> np.ndarray:
     """Bilinear samples (n, 2w+1, 2w+1) of ``img`` on the pixel grid offsets -w..w around each
     centre (n, 2) (x, y); indices beyond the image repeat its edge. All samples of a patch
-    share the centre's fractional part, so one (2w+2)^2 integer patch and four weights do.
+    share the centre's fractional part, so one (2w+2)^2 integer patch and four weights do
+    (interpolated along x on every row of the patch, then along y).
     Exact weights, not ``cv2.remap``'s: it rounds every sample position to 1/32 px, as
     large as the saddle shifts being measured."""
     base = np.floor(centres).astype(int)
@@ -423,8 +424,8 @@ def _bilinear_patches(img: np.ndarray, centres: np.ndarray, w: int) -> np.ndarra
     cols = np.clip(base[:, 0, None] + r, 0, img.shape[1] - 1)
     P = img[rows[:, :, None], cols[:, None, :]].astype(np.float64)
     fx, fy = f[:, 0], f[:, 1]
-    return ((1 - fy) * ((1 - fx) * P[:, :-1, :-1] + fx * P[:, :-1, 1:])
-            + fy * ((1 - fx) * P[:, 1:, :-1] + fx * P[:, 1:, 1:]))
+    along_x = (1 - fx) * P[:, :, :-1] + fx * P[:, :, 1:]  # every row once, (n, 2w+2, 2w+1)
+    return (1 - fy) * along_x[:, :-1] + fy * along_x[:, 1:]
 
 
 def _gray(image: np.ndarray) -> np.ndarray:

@@ -370,3 +370,24 @@ def test_box_means_match_the_blurred_image(r: int) -> None:
     full = cv2.blur(img.astype(np.float32), (2 * r + 1, 2 * r + 1))
     ref = full[at[:, 1].clip(0, 89), at[:, 0].clip(0, 129)]
     assert np.array_equal(_box_means(img, at, r), ref)
+
+
+def test_bilinear_patches_equal_the_four_corner_formula() -> None:
+    """Interpolating along x on every row of the patch once, then along y, gives the
+    four-corner bilinear formula's numbers exactly (the same products and sums)."""
+    from lidarcal.camera import _bilinear_patches
+
+    rng = np.random.default_rng(1)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (100, 140)).astype(np.float32), (0, 0), 1.5)
+    centres = np.vstack([rng.uniform(0, [139, 99], (30, 2)), [[0.3, 0.1], [138.7, 98.9]]])
+    w = 5
+    base = np.floor(centres).astype(int)
+    f = (centres - base)[:, :, None, None]
+    r = np.arange(-w, w + 2)
+    rows = np.clip(base[:, 1, None] + r, 0, 99)
+    cols = np.clip(base[:, 0, None] + r, 0, 139)
+    P = img[rows[:, :, None], cols[:, None, :]].astype(np.float64)
+    fx, fy = f[:, 0], f[:, 1]
+    ref = ((1 - fy) * ((1 - fx) * P[:, :-1, :-1] + fx * P[:, :-1, 1:])
+           + fy * ((1 - fx) * P[:, 1:, :-1] + fx * P[:, 1:, 1:]))
+    assert np.array_equal(_bilinear_patches(img, centres, w), ref)
