@@ -138,8 +138,12 @@ def symmetric_corners(gray: np.ndarray, camera: CameraModel, R: np.ndarray, T: n
     u = np.zeros_like(centre) if start_px is None else np.asarray(start_px, float) - centre
     # the image in a float crop around the board
     flat = px.reshape(-1, 2)
-    lo = np.maximum(np.floor(flat.min(0) + u.min(0) - 4).astype(int), 0)
-    hi = np.minimum(np.ceil(flat.max(0) + u.max(0) + 5).astype(int), [g.shape[1], g.shape[0]])
+    # each column reduced alone: numpy's min/max over axis 0 of an (n, 2) array is ~30 times
+    # slower (4 ms here)
+    flat_lo = np.array([flat[:, 0].min(), flat[:, 1].min()])
+    flat_hi = np.array([flat[:, 0].max(), flat[:, 1].max()])
+    lo = np.maximum(np.floor(flat_lo + u.min(0) - 4).astype(int), 0)
+    hi = np.minimum(np.ceil(flat_hi + u.max(0) + 5).astype(int), [g.shape[1], g.shape[0]])
     crop = g[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32)
     px = (px - lo).reshape(len(c), -1, 2)
     shape = (len(c), 2, ends.shape[2], len(t))
