@@ -372,14 +372,18 @@ def test_box_means_match_the_blurred_image(r: int) -> None:
     assert np.array_equal(_box_means(img, at, r), ref)
 
 
-def test_bilinear_patches_equal_the_four_corner_formula() -> None:
-    """Interpolating along x on every row of the patch once, then along y, gives the
-    four-corner bilinear formula's numbers exactly (the same products and sums)."""
+@pytest.mark.parametrize("at_edges", [False, True])
+def test_bilinear_patches_equal_the_four_corner_formula(at_edges: bool) -> None:
+    """Patches cut from the strided windows (all inside the image) or indexed pixel by pixel
+    (some beyond its edges, which repeat), interpolated along x on every row once and then
+    along y: the four-corner bilinear formula's numbers exactly (the same products and sums)."""
     from lidarcal.camera import _bilinear_patches
 
     rng = np.random.default_rng(1)
     img = cv2.GaussianBlur(rng.uniform(0, 255, (100, 140)).astype(np.float32), (0, 0), 1.5)
-    centres = np.vstack([rng.uniform(0, [139, 99], (30, 2)), [[0.3, 0.1], [138.7, 98.9]]])
+    centres = rng.uniform(6, [133, 93], (30, 2))
+    if at_edges:
+        centres = np.vstack([centres, [[0.3, 0.1], [138.7, 98.9]]])
     w = 5
     base = np.floor(centres).astype(int)
     f = (centres - base)[:, :, None, None]
