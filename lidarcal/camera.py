@@ -215,12 +215,10 @@ def grid_prediction_scaled(corners: np.ndarray, pattern_size: tuple[int, int],
 
 @lru_cache(maxsize=512)
 def _grid_operator(reach: int, used: bytes) -> tuple[np.ndarray, float]:
-    """:func:`grid_prediction_scaled`'s least-squares operator for one neighbourhood (the
-    grid offsets within ``reach``, row-major, where ``used``, a bool mask's bytes, is set):
-    the quadratic map's constant term as weights on the neighbours, ``pinv(A)[0]``, and the
-    prediction's noise gain ``sqrt(1 + (A'A)^-1 [0, 0])``. It depends on the offsets alone,
-    so it is computed once per process for each neighbourhood (a board's dozens, reused by
-    every call)."""
+    """:func:`grid_prediction_scaled`'s operator for one neighbourhood (the offsets within
+    ``reach``, row-major, where the bool mask ``used`` is set): the quadratic map's constant
+    term as weights, ``pinv(A)[0]``, and the noise gain ``sqrt(1 + (A'A)^-1 [0, 0])``; it
+    depends on the offsets alone, so it is computed once per process."""
     dj, di = (d.ravel() for d in np.mgrid[-reach:reach + 1, -reach:reach + 1])
     m = np.frombuffer(used, dtype=bool)
     u, v = di[m].astype(float), dj[m].astype(float)
