@@ -345,9 +345,10 @@ def _runs(rho: np.ndarray, valid_idx: np.ndarray, dtheta: float, sigma: float,
     The allowed jump between beams ``g`` apart is ``6 sqrt(2) sigma + 6 g rho dtheta``
     (noise plus a surface seen at up to ~80 deg incidence); depth edges are far larger.
     Skipping up to ``max_gap`` beams bridges dropouts and isolated spurious returns.
+    Returns the connected-component label of each valid return (:func:`_component_labels`).
     """
     m = len(valid_idx)
-    rows, cols = [], []
+    edges = []
     r = rho[valid_idx]
     for lag in range(1, max_gap + 1):
         if lag >= m:
@@ -356,14 +357,41 @@ def _runs(rho: np.ndarray, valid_idx: np.ndarray, dtheta: float, sigma: float,
         rr = np.minimum(r[lag:], r[:-lag])
         tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * g * rr * dtheta
         ok = (g <= max_gap) & (np.abs(r[lag:] - r[:-lag]) <= tau)
-        i = np.flatnonzero(ok)
-        rows.append(i)
-        cols.append(i + lag)
-    rows = np.concatenate(rows) if rows else np.zeros(0, int)
-    cols = np.concatenate(cols) if cols else np.zeros(0, int)
+        edges.append((np.flatnonzero(ok), lag))
+    return _component_labels(m, edges)
+
+
+def _component_labels(m: int, edges: list[tuple[np.ndarray, int]]) -> np.ndarray:
+    """Connected components of the graph on ``m`` ordered nodes with the edges ``i -> i + lag``
+    (``(i, lag)`` pairs of node arrays and their lag), labelled ``0, 1, ...`` in the order of
+    each component's first node, as :func:`scipy.sparse.csgraph.connected_components` does.
+
+    The edges join nodes a few places apart, so the components are almost always blocks of
+    consecutive nodes, bar isolated nodes (no edge: a spurious return, bridged over): each
+    node joined to an earlier one belongs to a block that starts at a node joined only to
+    later ones. That is exact when no edge passes over such a starting node (it then cuts
+    the order in two; the isolated nodes touch no edge); otherwise the graph is labelled by
+    :func:`connected_components` (sparse graph, depth-first search).
+    """
+    back = np.zeros(m, bool)  # node joined to an earlier node
+    fwd = np.zeros(m, bool)  # node joined to a later node
+    over = np.zeros(m, bool)  # node strictly between the two ends of some edge
+    for i, lag in edges:
+        back[i + lag] = True
+        fwd[i] = True
+        for d in range(1, lag):
+            over[i + d] = True
+    starts = fwd & ~back
+    if not np.any(starts & over):
+        node = np.arange(m)
+        first = np.maximum.accumulate(np.where(starts, node, 0))  # the first node of its block
+        alone = ~(fwd | back)
+        first[alone] = node[alone]
+        return (np.cumsum(starts | alone) - 1)[first]  # components by their first node
+    rows = np.concatenate([i for i, _ in edges]) if edges else np.zeros(0, int)
+    cols = np.concatenate([i + lag for i, lag in edges]) if edges else np.zeros(0, int)
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, m))
-    _, labels = connected_components(graph, directed=False)
-    return labels
+    return connected_components(graph, directed=False)[1]
 
 
 def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
