@@ -73,18 +73,78 @@ def _unit2(v: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # V segmentation
 
-def _segment_ends(seg: LineSegment, pts: np.ndarray):
-    """A segment's line (normal, offset), the feet of its first and last points on it, and
-    the distance between those two points (floats, for :func:`split_v`'s pair test)."""
-    nx, ny = (float(v) for v in seg.line.normal)
-    c = float(seg.line.offset)
-    feet = []
-    for b in (seg.beams[0], seg.beams[-1]):
-        x, y = float(pts[b, 0]), float(pts[b, 1])
+def _segment_ends(segments: list[LineSegment], pts: np.ndarray) -> dict[str, np.ndarray]:
+    """Every segment's line (normal ``nx, ny``, offset ``c``), the feet of its first and last
+    points on it (``fx, fy`` and ``gx, gy``) and the distance between those two points
+    (``length``): arrays over the segments, for :func:`_v_pairs`."""
+    nx, ny = np.array([sg.line.normal for sg in segments]).T
+    c = np.array([sg.line.offset for sg in segments], dtype=float)
+    p0 = pts[[sg.beams[0] for sg in segments]]
+    p1 = pts[[sg.beams[-1] for sg in segments]]
+    out = {"nx": nx, "ny": ny, "c": c, "length": np.hypot(*(p1 - p0).T)}
+    for name, (x, y) in (("f", p0.T), ("g", p1.T)):
         r = x * nx + y * ny - c
-        feet.append((x - r * nx, y - r * ny))
-    p0, p1 = pts[seg.beams[0]], pts[seg.beams[-1]]
-    return (nx, ny), c, feet[0], feet[1], float(np.hypot(*(p1 - p0)))
+        out[name + "x"], out[name + "y"] = x - r * nx, y - r * ny
+    return out
+
+
+def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: float,
+             hi: float, alpha: float | None, alpha_tol_deg: float) -> list[tuple]:
+    """Step (4) of :func:`split_v`: the pairs of segments that form the V, as ``(points,
+    segment 1, segment 2, opening)`` in beam order of segment 1, then of segment 2.
+
+    Every pair of segments at most 3 apart in beam order is tested at once (arrays over the
+    pairs): the lines' vertex E, the eq. (12) rays l1 (E to the foot of segment 1's first
+    point) and l2 (E to the foot of segment 2's last point), a concave turn (``z . (l1 x l2)
+    < 0``) with an opening in ``[lo, hi]`` rad (and within ``alpha_tol_deg`` of ``alpha``),
+    the vertex at the inner ends (at most 10 % beyond them into a segment, 25 % short of
+    them); segments between the two in beam order must lie farther than E (seen through a
+    gap at the hinge).
+    """
+    e = _segment_ends(segments, pts)
+    ii, jj = [], []
+    for i in range(len(segments)):
+        for j in range(i + 1, min(i + 4, len(segments))):
+            ii.append(i)
+            jj.append(j)
+    i, j = np.array(ii, dtype=int), np.array(jj, dtype=int)
+    n1x, n1y, c1, n2x, n2y, c2 = e["nx"][i], e["ny"][i], e["c"][i], e["nx"][j], e["ny"][j], e["c"][j]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = n1x * n2y - n1y * n2x
+        Ex, Ey = (c1 * n2y - n1y * c2) / det, (n1x * c2 - c1 * n2x) / det
+        # f1: foot of segment 1's first point, g1: of its last (inner end); h2: foot of
+        # segment 2's first point (inner end), f2: of its last
+        d1x, d1y = e["fx"][i] - Ex, e["fy"][i] - Ey
+        d2x, d2y = e["gx"][j] - Ex, e["gy"][j] - Ey
+        m1, m2 = np.hypot(d1x, d1y), np.hypot(d2x, d2y)
+        l1x, l1y, l2x, l2y = d1x / m1, d1y / m1, d2x / m2, d2y / m2
+        cross = l1x * l2y - l1y * l2x
+        opening = np.arctan2(np.abs(cross), l1x * l2x + l1y * l2y)
+        gap1 = (e["gx"][i] - Ex) * l1x + (e["gy"][i] - Ey) * l1y  # inner end of 1, along l1
+        gap2 = (e["fx"][j] - Ex) * l2x + (e["fy"][j] - Ey) * l2y
+        len1, len2 = e["length"][i], e["length"][j]
+        ok = ((np.abs(det) >= 1e-9) & (m1 != 0) & (m2 != 0)  # a vertex, not at a segment end
+              & (cross < 0) & (lo <= opening) & (opening <= hi)  # concave, opening in range
+              & (-0.1 * len1 <= gap1) & (gap1 <= 0.25 * len1)
+              & (-0.1 * len2 <= gap2) & (gap2 <= 0.25 * len2))
+        if alpha is not None:
+            ok &= ~(np.abs(opening - alpha) > np.radians(alpha_tol_deg))
+    med_rho: dict[int, float] = {}
+
+    def median_range(m: int) -> float:  # a segment's median range, when asked
+        if m not in med_rho:
+            med_rho[m] = _median(rho[segments[m].beams])
+        return med_rho[m]
+
+    candidates = []
+    for k in np.flatnonzero(ok):
+        a, b = int(i[k]), int(j[k])
+        rE = np.hypot(Ex[k], Ey[k])
+        if not all(median_range(m) > rE for m in range(a + 1, b)):
+            continue
+        candidates.append((len(segments[a].beams) + len(segments[b].beams), segments[a],
+                           segments[b], float(opening[k])))
+    return candidates
 
 
 @dataclass(frozen=True)
@@ -197,42 +257,7 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         opening_deg = ((max(1.0, np.degrees(alpha) - alpha_tol_deg), min(179.0, np.degrees(alpha) + alpha_tol_deg))
                        if alpha is not None else (90.0, 170.0))
     lo, hi = np.radians(opening_deg)
-    candidates = []
-    ends = [_segment_ends(sg, pts) for sg in segments]
-    med_rho: dict[int, float] = {}  # a segment's median range, when asked (``behind``)
-    for i in range(len(segments)):
-        for j in range(i + 1, min(i + 4, len(segments))):
-            s1, s2 = segments[i], segments[j]
-            (n1, c1, f1, g1, len1), (n2, c2, h2, f2, len2) = ends[i], ends[j]
-            # f1: foot of segment 1's first point, g1: of its last (inner end); h2: foot of
-            # segment 2's first point (inner end), f2: of its last
-            det = n1[0] * n2[1] - n1[1] * n2[0]
-            if abs(det) < 1e-9:
-                continue  # parallel: no vertex
-            E = ((c1 * n2[1] - n1[1] * c2) / det, (n1[0] * c2 - c1 * n2[0]) / det)
-            d1 = (f1[0] - E[0], f1[1] - E[1])
-            d2 = (f2[0] - E[0], f2[1] - E[1])
-            m1, m2 = np.hypot(*d1), np.hypot(*d2)
-            if m1 == 0 or m2 == 0:
-                continue  # degenerate V: a segment end coincides with the vertex
-            l1, l2 = (d1[0] / m1, d1[1] / m1), (d2[0] / m2, d2[1] / m2)
-            cross = l1[0] * l2[1] - l1[1] * l2[0]
-            opening = float(np.arctan2(abs(cross), l1[0] * l2[0] + l1[1] * l2[1]))
-            if not (cross < 0 and lo <= opening <= hi):  # concave, opening in range
-                continue
-            # the vertex must sit at the inner ends: not beyond them into either segment
-            gap1 = (g1[0] - E[0]) * l1[0] + (g1[1] - E[1]) * l1[1]  # inner end of 1, along l1
-            gap2 = (h2[0] - E[0]) * l2[0] + (h2[1] - E[1]) * l2[1]
-            if not ((-0.1 * len1 <= gap1 <= 0.25 * len1) and (-0.1 * len2 <= gap2 <= 0.25 * len2)):
-                continue
-            if alpha is not None and abs(opening - alpha) > np.radians(alpha_tol_deg):
-                continue
-            # segments between the two in beam order must be seen through a gap at the hinge
-            rE = np.hypot(*E)
-            if not all(med_rho.setdefault(b, _median(rho[segments[b].beams])) > rE
-                       for b in range(i + 1, j)):
-                continue
-            candidates.append((len(s1.beams) + len(s2.beams), s1, s2, opening))
+    candidates = _v_pairs(segments, pts, rho, lo, hi, alpha, alpha_tol_deg)
     if not candidates:
         raise ValueError(f"found {len(segments)} line segments but no pair forms the V "
                          f"(adjacent, concave, opening {opening_deg[0]:.0f}-{opening_deg[1]:.0f} deg"
