@@ -108,7 +108,8 @@ def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: 
             ii.append(i)
             jj.append(j)
     i, j = np.array(ii, dtype=int), np.array(jj, dtype=int)
-    n1x, n1y, c1, n2x, n2y, c2 = e["nx"][i], e["ny"][i], e["c"][i], e["nx"][j], e["ny"][j], e["c"][j]
+    n1x, n1y, c1 = e["nx"][i], e["ny"][i], e["c"][i]
+    n2x, n2y, c2 = e["nx"][j], e["ny"][j], e["c"][j]
     with np.errstate(divide="ignore", invalid="ignore"):
         det = n1x * n2y - n1y * n2x
         Ex, Ey = (c1 * n2y - n1y * c2) / det, (n1x * c2 - c1 * n2x) / det

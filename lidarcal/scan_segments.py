@@ -16,6 +16,7 @@ edges). Beams are in ascending angle order. :mod:`lidarcal.scan` re-exports the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -149,19 +150,21 @@ def fit_line_2d(points: np.ndarray) -> Line2D:
     x, y = p.T
     cx, cy = x.sum() / len(p), y.sum() / len(p)  # the centroid
     dx, dy = x - cx, y - cy  # centred, each contiguous
-    a = 0.5 * np.arctan2(2.0 * float(dx @ dy), float(dx @ dx) - float(dy @ dy))
-    n = np.array([-np.sin(a), np.cos(a)])
-    return Line2D(n, float(n[0] * cx + n[1] * cy))
+    a = 0.5 * float(np.arctan2(2.0 * float(dx @ dy), float(dx @ dx) - float(dy @ dy)))
+    nx, ny = -math.sin(a), math.cos(a)  # (math's sin and cos round as numpy's do)
+    return Line2D(np.array([nx, ny]), nx * float(cx) + ny * float(cy))
 
 
 def _median(v: np.ndarray) -> float:
     """``np.median`` of a finite 1-D array, by partition (no NaN handling)."""
     n = len(v)
     k = n // 2
+    w = v.copy()  # (the method on a copy: np.partition's dispatch costs as much as the work)
     if n % 2:
-        return float(np.partition(v, k)[k])
-    lo, hi = np.partition(v, [k - 1, k])[k - 1:k + 1]
-    return float((lo + hi) / 2)
+        w.partition(k)
+        return float(w[k])
+    w.partition([k - 1, k])
+    return (float(w[k - 1]) + float(w[k])) / 2
 
 
 
@@ -193,52 +196,86 @@ def _mad_scale(r: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * _median(np.abs(r - _median(r))))
 
 
-def _two_line_scale(p: np.ndarray, k: int) -> float:
-    """Robust scale of the pooled residuals of TLS lines through ``p[:k]`` and ``p[k:]``."""
-    return _mad_scale(np.concatenate([fit_line_2d(p[:k]).distance(p[:k]),
-                                      fit_line_2d(p[k:]).distance(p[k:])]))
+class _PieceScales:
+    """Robust residual scales of TLS lines through pieces ``p[a:b]`` of one run of points,
+    each line fitted once: the top-down split (:func:`_split_into_lines`) and the merge
+    (:func:`_merge_collinear`) ask for the same pieces (a split's two halves are the next
+    level's pieces; a merge test of two halves is the split test that cut them)."""
+
+    def __init__(self, p: np.ndarray) -> None:
+        self.p = p
+        self._resid: dict[tuple[int, int], np.ndarray] = {}
+        self._one: dict[tuple[int, int], float] = {}
+        self._two: dict[tuple[int, int, int], float] = {}
+
+    def residuals(self, a: int, b: int) -> np.ndarray:
+        """Signed orthogonal residuals of ``p[a:b]`` to their TLS line."""
+        if (a, b) not in self._resid:
+            q = self.p[a:b]
+            self._resid[a, b] = fit_line_2d(q).distance(q)
+        return self._resid[a, b]
+
+    def one(self, a: int, b: int) -> float:
+        """MAD scale of the residuals of one line through ``p[a:b]``."""
+        if (a, b) not in self._one:
+            self._one[a, b] = _mad_scale(self.residuals(a, b))
+        return self._one[a, b]
+
+    def two(self, a: int, k: int, b: int) -> float:
+        """MAD scale of the pooled residuals of lines through ``p[a:k]`` and ``p[k:b]``."""
+        if (a, k, b) not in self._two:
+            self._two[a, k, b] = _mad_scale(np.concatenate([self.residuals(a, k),
+                                                            self.residuals(k, b)]))
+        return self._two[a, k, b]
 
 
-def _split_into_lines(p: np.ndarray, sigma: float, min_points: int) -> list[tuple[int, int]]:
-    """Top-down split of ordered points into line pieces, as [start, end) ranges.
+def _split_into_lines(p: np.ndarray, sigma: float, min_points: int,
+                      scales: _PieceScales | None = None, a: int = 0,
+                      b: int | None = None) -> list[tuple[int, int]]:
+    """Top-down split of ordered points ``p[a:b]`` (all of ``p`` by default) into line pieces,
+    as [start, end) ranges of ``p``.
 
     A piece is split at the breakpoint minimising the two-line TLS error while
     its single-line residuals have a robust scale (MAD) above ``2 sigma`` *and*
     the two lines at least halve that scale (``_SPLIT_GAIN``): the test adapts
     to the measured residuals, so a surface whose ranges step by a few mm
     along it (dark squares read farther, quantised or rippled real ranges)
-    stays one piece, while a kink (the hinge, a mount) is split.
+    stays one piece, while a kink (the hinge, a mount) is split. ``scales``
+    holds the pieces' line fits (shared with :func:`_merge_collinear`).
     """
-    n = len(p)
+    scales = _PieceScales(p) if scales is None else scales
+    b = len(p) if b is None else b
+    n = b - a
     if n < 2 * min_points:
-        return [(0, n)]
-    scale = _mad_scale(fit_line_2d(p).distance(p))
+        return [(a, b)]
+    scale = scales.one(a, b)
     if scale <= 2.0 * sigma:
-        return [(0, n)]
-    sse = _tls_sse_splits(p, min_points, n - min_points + 1)
-    k = min_points + int(np.argmin(sse))
-    if _two_line_scale(p, k) > _SPLIT_GAIN * scale:
-        return [(0, n)]
-    left = _split_into_lines(p[:k], sigma, min_points)
-    right = _split_into_lines(p[k:], sigma, min_points)
-    return left + [(a + k, b + k) for a, b in right]
+        return [(a, b)]
+    sse = _tls_sse_splits(p[a:b], min_points, n - min_points + 1)
+    k = a + min_points + int(np.argmin(sse))
+    if scales.two(a, k, b) > _SPLIT_GAIN * scale:
+        return [(a, b)]
+    return (_split_into_lines(p, sigma, min_points, scales, a, k)
+            + _split_into_lines(p, sigma, min_points, scales, k, b))
 
 
-def _merge_collinear(p: np.ndarray, pieces: list[tuple[int, int]]) -> list[tuple[int, int]]:
+def _merge_collinear(p: np.ndarray, pieces: list[tuple[int, int]],
+                     scales: _PieceScales | None = None) -> list[tuple[int, int]]:
     """Merge neighbouring pieces that are one line by the split test of :func:`_split_into_lines`.
 
     Two adjacent pieces are merged when one line through both has a robust
     residual scale below ``1 / _SPLIT_GAIN`` times that of their own two lines
     (the top-down split may cut a long staircase where neither half is straight).
+    ``scales`` holds the pieces' line fits (shared with the split).
     """
+    scales = _PieceScales(p) if scales is None else scales
     out = list(pieces)
     merged = True
     while merged and len(out) > 1:
         merged = False
         for i in range(len(out) - 1):
             (a, k), (_, b) = out[i], out[i + 1]
-            q = p[a:b]
-            if _mad_scale(fit_line_2d(q).distance(q)) * _SPLIT_GAIN < _two_line_scale(q, k - a):
+            if scales.one(a, b) * _SPLIT_GAIN < scales.two(a, k, b):
                 out[i:i + 2] = [(a, b)]
                 merged = True
                 break
@@ -433,7 +470,9 @@ def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
         if len(beams) < min_points:
             continue
         p = pts[beams]
-        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points)):
+        scales = _PieceScales(p)
+        pieces = _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales)
+        for a, b in pieces:
             span = beams[a:b]
             line, mask, scale = _robust_line(pts[span], sigma, rng)
             if mask.sum() >= min_points:
