@@ -33,6 +33,7 @@ import numpy as np
 from .scan_segments import (  # noqa: F401  (re-exported: the segmentation lives there)
     Line2D,
     LineSegment,
+    _line_segments,
     _median,
     effective_range_noise,
     estimate_range_noise,
@@ -247,8 +248,7 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
     if n_valid < 2 * min_points:
         raise ValueError(f"scan has {n_valid} returns; need at least {2 * min_points} "
                          "to find the two board segments")
-    segments, sigma = line_segments(ang, range_mm, range_noise_mm=range_noise_mm,
-                                    min_points=min_points, max_gap=max_gap)
+    segments, sigma = _line_segments(ang, pts, rho, range_noise_mm, min_points, max_gap)
 
     if len(segments) < 2:
         raise ValueError(f"found {len(segments)} board segment{'s' if len(segments) != 1 else ''}, "

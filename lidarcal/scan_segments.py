@@ -452,14 +452,23 @@ def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
     """
     ang = np.asarray(angle_deg, dtype=float)
     pts = scan_points(ang, range_mm)
-    rho = np.hypot(pts[:, 0], pts[:, 1])
+    return _line_segments(ang, pts, np.hypot(pts[:, 0], pts[:, 1]), range_noise_mm, min_points,
+                          max_gap)
+
+
+def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
+                   range_noise_mm: float | None, min_points: int,
+                   max_gap: int) -> tuple[list[LineSegment], float]:
+    """:func:`line_segments` of a scan's beam angles (deg), eq. (6) points and ranges (mm)."""
     if np.any(np.diff(ang) <= 0):
         raise ValueError("scan angles must be strictly ascending (beam order)")
     valid_idx = np.flatnonzero(np.isfinite(rho))
     if len(valid_idx) < min_points:
         return [], float(range_noise_mm or 0.0)
     sigma = float(range_noise_mm) if range_noise_mm is not None else effective_range_noise(rho)
-    sigma = max(sigma, 1e-6 * _median(rho[valid_idx]))
+    r_valid = rho[valid_idx]
+    if sigma < 1e-6 * r_valid.max():  # (else the floor, a millionth of the median range, is lower)
+        sigma = max(sigma, 1e-6 * _median(r_valid))
     dtheta = _median(np.diff(np.radians(ang)))
     rng = np.random.default_rng(0)
 
@@ -474,14 +483,11 @@ def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
         pieces = _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales)
         for a, b in pieces:
             span = beams[a:b]
-            line, mask, scale = _robust_line(pts[span], sigma, rng)
-            if mask.sum() >= min_points:
-                segments.append(LineSegment(span[mask], span, line, scale, pts[span[mask]],
-                                             int(lab)))
+            line, mask, scale = _robust_line(p[a:b], sigma, rng)
+            if np.count_nonzero(mask) >= min_points:
+                segments.append(LineSegment(span[mask], span, line, scale, p[a:b][mask], int(lab)))
     segments.sort(key=lambda s: s.beams[0])
     return segments, sigma
-
-
 
 
 def local_line_noise(angle_deg: np.ndarray, range_mm: np.ndarray, window: int = 15) -> float:
