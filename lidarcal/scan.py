@@ -26,6 +26,7 @@ it on ray-cast scans.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,7 +66,7 @@ def _cross2(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _unit2(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v)
+    n = math.sqrt(float(v @ v))  # np.linalg.norm(v), as it computes it
     if n == 0:
         raise ValueError("degenerate V: a segment end coincides with the vertex")
     return v / n
@@ -358,7 +359,11 @@ def fit_v_lines_free(points1: np.ndarray, points2: np.ndarray) -> LidarLines:
     The unconstrained fit: the angle between the rays is whatever the data say,
     so eq. (13) would not give a rotation. Used to initialise and to compare.
     """
-    p1, p2 = _check_points(points1, "points1"), _check_points(points2, "points2")
+    return _fit_free(_check_points(points1, "points1"), _check_points(points2, "points2"))
+
+
+def _fit_free(p1: np.ndarray, p2: np.ndarray) -> LidarLines:
+    """:func:`fit_v_lines_free` of checked points."""
     L1, L2 = fit_line_2d(p1), fit_line_2d(p2)
     E, l1, l2 = _rays(L1, L2, p1, p2)
     ang = float(np.arctan2(abs(_cross2(l1, l2)), l1 @ l2))
@@ -393,14 +398,14 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
     p1, p2 = _check_points(points1, "points1"), _check_points(points2, "points2")
     if not 0 < alpha < np.pi:
         raise ValueError(f"alpha must be in (0, pi) rad, got {alpha!r}")
-    free = fit_v_lines_free(p1, p2)
+    free = _fit_free(p1, p2)
     s = free.sign if sign is None else int(np.sign(sign))
     if s not in (-1, 1):
         raise ValueError(f"sign must be -1 or +1, got {sign!r}")
     Q = _rot2(s * alpha)
     m1, m2 = p1.mean(0), p2.mean(0)
-    S1 = (p1 - m1).T @ (p1 - m1)
-    S2 = (p2 - m2).T @ (p2 - m2)
+    d1, d2 = p1 - m1, p2 - m2
+    S1, S2 = d1.T @ d1, d2.T @ d2
     _, V = np.linalg.eigh(S1 + Q.T @ S2 @ Q)
     n1 = V[:, 0]
     n2 = Q @ n1
