@@ -183,12 +183,12 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
         return np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
 
     x, y = q[:, 0], q[:, 1]
-    cs = np.zeros((n + 1, 5))
+    cs = np.zeros((n + 1, 5))  # cs[i]: the moments of p[:i]
     np.cumsum(np.column_stack([x, y, x * x, x * y, y * y]), axis=0, out=cs[1:])
     k = np.arange(lo, hi)
-    left = sse(k.astype(float), *cs[k].T)
-    right = sse((n - k).astype(float), *(cs[-1] - cs[k]).T)
-    return left + right
+    left = cs[k]  # moments of p[:k], then of p[k:]: both sides in one pass
+    both = sse(np.concatenate([k, n - k]).astype(float), *np.vstack([left, cs[-1] - left]).T)
+    return both[:len(k)] + both[len(k):]
 
 
 def _mad_scale(r: np.ndarray) -> float:
@@ -294,15 +294,19 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         # all hypotheses at once: pairs of distinct points, their line normals, inlier counts
         i = rng.integers(n, size=trials)
         j = (i + rng.integers(1, n, size=trials)) % n
-        d = p[j] - p[i]
+        pi = p[i]
+        d = p[j] - pi
         ln = np.hypot(d[:, 0], d[:, 1])
         good = ln > 0
-        if good.any():
-            if not good.all():
-                i, d, ln = i[good], d[good], ln[good]
-            nrm = np.column_stack([-d[:, 1], d[:, 0]]) / ln[:, None]
-            off = np.einsum("ij,ij->i", p[i], nrm)
-            inl = np.abs(nrm @ p.T - off[:, None]) <= k * sigma  # (hypotheses, n)
+        n_good = np.count_nonzero(good)
+        if n_good:
+            if n_good < len(good):
+                pi, d, ln = pi[good], d[good], ln[good]
+            nrm = d[:, ::-1] * (-1.0, 1.0) / ln[:, None]  # (-dy, dx) / |d|
+            off = np.einsum("ij,ij->i", pi, nrm)
+            dist = nrm @ p.T  # (hypotheses, n), then |dist - off| in place
+            dist -= off[:, None]
+            inl = np.abs(dist, out=dist) <= k * sigma
             # inliers per hypothesis: a row sum of bytes (count_nonzero along an axis is slower)
             best = inl[int(np.argmax(inl.view(np.uint8).sum(axis=1, dtype=np.intp)))]
     mask = best
@@ -317,7 +321,7 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
         new = r <= k * scale
         if np.count_nonzero(new) < 2:
             break
-        same = np.array_equal(new, mask)
+        same = bool((new == mask).all())  # (np.array_equal of two boolean masks)
         if not (same and of_mask):  # (a refit of the same points would give this line again)
             line = fit_line_2d(p[new])
         if same:
@@ -474,10 +478,8 @@ def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
 
     labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
     segments: list[LineSegment] = []
-    for lab in np.unique(labels):
+    for lab in np.flatnonzero(np.bincount(labels) >= min_points):  # (labels 0, 1, ...)
         beams = valid_idx[labels == lab]
-        if len(beams) < min_points:
-            continue
         p = pts[beams]
         scales = _PieceScales(p)
         pieces = _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales)
