@@ -287,28 +287,67 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
     """RANSAC (threshold ``k sigma``) then iterated TLS refit, threshold ``k`` x MAD scale.
 
     Returns the line, the inlier mask and the robust residual scale (mm).
+    (:func:`line_segments` runs the two steps, :func:`_ransac_masks` and
+    :func:`_refine_line`, on all the pieces of a scan at once.)
     """
-    n = len(p)
-    best = np.ones(n, bool)
-    if n > 3:
-        # all hypotheses at once: pairs of distinct points, their line normals, inlier counts
-        i = rng.integers(n, size=trials)
-        j = (i + rng.integers(1, n, size=trials)) % n
-        pi = p[i]
-        d = p[j] - pi
-        ln = np.hypot(d[:, 0], d[:, 1])
-        good = ln > 0
-        n_good = np.count_nonzero(good)
-        if n_good:
-            if n_good < len(good):
-                pi, d, ln = pi[good], d[good], ln[good]
-            nrm = d[:, ::-1] * (-1.0, 1.0) / ln[:, None]  # (-dy, dx) / |d|
-            off = np.einsum("ij,ij->i", pi, nrm)
-            dist = nrm @ p.T  # (hypotheses, n), then |dist - off| in place
-            dist -= off[:, None]
-            inl = np.abs(dist, out=dist) <= k * sigma
-            # inliers per hypothesis: a row sum of bytes (count_nonzero along an axis is slower)
-            best = inl[int(np.argmax(inl.view(np.uint8).sum(axis=1, dtype=np.intp)))]
+    return _refine_line(p, sigma, _ransac_masks([p], sigma, rng, k, trials)[0], k)
+
+
+def _ransac_masks(pieces: list[np.ndarray], sigma: float, rng: np.random.Generator,
+                  k: float = 3.5, trials: int = 100) -> list[np.ndarray]:
+    """RANSAC on each piece of points (threshold ``k sigma``): the inliers of the line through
+    the pair of distinct points, of ``trials`` random pairs, that has the most inliers.
+
+    The pairs are drawn piece after piece (the same draws as one piece at a time); their
+    normals and offsets are computed for all pieces at once, the inlier counts per piece (a
+    hypothesis sees only its own piece's points). A piece of at most 3 points keeps them all.
+    """
+    drawn = [n > 3 for n in map(len, pieces)]
+    if not any(drawn):
+        return [np.ones(len(q), bool) for q in pieces]
+    first, second, start = [], [], 0  # pair indices into the pieces' concatenated points
+    for q, d in zip(pieces, drawn):
+        n = len(q)
+        if d:
+            i = rng.integers(n, size=trials)
+            first.append(start + i)
+            second.append(start + (i + rng.integers(1, n, size=trials)) % n)
+        start += n
+    P = np.concatenate(pieces)
+    pi = P[np.concatenate(first)]
+    d = P[np.concatenate(second)] - pi
+    ln = np.hypot(d[:, 0], d[:, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):  # (a pair of equal points: not used)
+        nrm = d[:, ::-1] * (-1.0, 1.0) / ln[:, None]  # (-dy, dx) / |d|
+    off = np.einsum("ij,ij->i", pi, nrm)
+    good = ln > 0
+    n_good = np.add.reduceat(good, np.arange(0, len(good), trials), dtype=np.intp)
+    out, h = [], 0
+    for q, d in zip(pieces, drawn):
+        if not d:
+            out.append(np.ones(len(q), bool))
+            continue
+        rows = slice(h, h + trials)
+        g = int(n_good[h // trials])
+        h += trials
+        if g == 0:
+            out.append(np.ones(len(q), bool))
+            continue
+        nr, of = nrm[rows], off[rows]
+        if g < trials:
+            nr, of = nr[good[rows]], of[good[rows]]
+        dist = nr @ q.T  # (hypotheses, n), then |dist - off| in place
+        dist -= of[:, None]
+        inl = np.abs(dist, out=dist) <= k * sigma
+        # inliers per hypothesis: a row sum of bytes (count_nonzero along an axis is slower)
+        out.append(inl[int(np.argmax(inl.view(np.uint8).sum(axis=1, dtype=np.intp)))])
+    return out
+
+
+def _refine_line(p: np.ndarray, sigma: float, best: np.ndarray,
+                 k: float = 3.5) -> tuple[Line2D, np.ndarray, float]:
+    """Iterated TLS refit from the RANSAC inliers ``best``, threshold ``k`` x MAD scale, then
+    the levels of a staircase kept (:func:`_level_runs`): the line, its inliers, the scale."""
     mask = best
     of_mask = np.count_nonzero(mask) >= 2  # ``line`` is the TLS line of ``p[mask]``
     line = fit_line_2d(p[mask]) if of_mask else fit_line_2d(p)
@@ -477,17 +516,19 @@ def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
     rng = np.random.default_rng(0)
 
     labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
-    segments: list[LineSegment] = []
+    pieces = []  # (run label, beams of the piece, its points)
     for lab in np.flatnonzero(np.bincount(labels) >= min_points):  # (labels 0, 1, ...)
         beams = valid_idx[labels == lab]
         p = pts[beams]
         scales = _PieceScales(p)
-        pieces = _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales)
-        for a, b in pieces:
-            span = beams[a:b]
-            line, mask, scale = _robust_line(p[a:b], sigma, rng)
-            if np.count_nonzero(mask) >= min_points:
-                segments.append(LineSegment(span[mask], span, line, scale, p[a:b][mask], int(lab)))
+        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales):
+            pieces.append((int(lab), beams[a:b], p[a:b]))
+    segments: list[LineSegment] = []
+    ransac = _ransac_masks([q for _, _, q in pieces], sigma, rng)
+    for (lab, span, q), best in zip(pieces, ransac):
+        line, mask, scale = _refine_line(q, sigma, best)
+        if np.count_nonzero(mask) >= min_points:
+            segments.append(LineSegment(span[mask], span, line, scale, q[mask], lab))
     segments.sort(key=lambda s: s.beams[0])
     return segments, sigma
 
