@@ -148,7 +148,7 @@ def fit_line_2d(points: np.ndarray) -> Line2D:
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
         raise ValueError(f"A line needs points with shape (N >= 2, 2), got {p.shape}")
     x, y = p.T
-    cx, cy = x.sum() / len(p), y.sum() / len(p)  # the centroid
+    cx, cy = np.add.reduce(x) / len(p), np.add.reduce(y) / len(p)  # the centroid (as x.sum())
     dx, dy = x - cx, y - cy  # centred, each contiguous
     a = 0.5 * float(np.arctan2(2.0 * float(dx @ dy), float(dx @ dx) - float(dy @ dy)))
     nx, ny = -math.sin(a), math.cos(a)  # (math's sin and cos round as numpy's do)
@@ -429,23 +429,25 @@ def _runs(rho: np.ndarray, valid_idx: np.ndarray, dtheta: float, sigma: float,
     Returns the connected-component label of each valid return (:func:`_component_labels`).
     """
     m = len(valid_idx)
-    edges = []
+    if m < 2:
+        return np.zeros(m, int)
     r = rho[valid_idx]
-    for lag in range(1, max_gap + 1):
-        if lag >= m:
-            break
-        g = valid_idx[lag:] - valid_idx[:-lag]
-        rr = np.minimum(r[lag:], r[:-lag])
-        tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * g * rr * dtheta
-        ok = (g <= max_gap) & (np.abs(r[lag:] - r[:-lag]) <= tau)
-        edges.append((np.flatnonzero(ok), lag))
-    return _component_labels(m, edges)
+    lags = np.arange(1, min(max_gap, m - 1) + 1)  # return i and return i + lag, lag < m
+    # every lag at once, (lags, m): past the last return, no range (NaN) and no beam
+    ahead = np.arange(m) + lags[:, None]
+    r_ahead = np.concatenate([r, np.full(len(lags), np.nan)])[ahead]
+    g = np.concatenate([valid_idx, np.full(len(lags), valid_idx[-1] + max_gap + 1)])[ahead] \
+        - valid_idx
+    rr = np.minimum(r_ahead, r)
+    tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * g * rr * dtheta
+    ok = (g <= max_gap) & (np.abs(r_ahead - r) <= tau)
+    return _component_labels(ok)
 
 
-def _component_labels(m: int, edges: list[tuple[np.ndarray, int]]) -> np.ndarray:
+def _component_labels(edge: np.ndarray) -> np.ndarray:
     """Connected components of the graph on ``m`` ordered nodes with the edges ``i -> i + lag``
-    (``(i, lag)`` pairs of node arrays and their lag), labelled ``0, 1, ...`` in the order of
-    each component's first node, as :func:`scipy.sparse.csgraph.connected_components` does.
+    where ``edge[lag - 1, i]`` (shape (lags, m)), labelled ``0, 1, ...`` in the order of each
+    component's first node, as :func:`scipy.sparse.csgraph.connected_components` does.
 
     The edges join nodes a few places apart, so the components are almost always blocks of
     consecutive nodes, bar isolated nodes (no edge: a spurious return, bridged over): each
@@ -454,14 +456,15 @@ def _component_labels(m: int, edges: list[tuple[np.ndarray, int]]) -> np.ndarray
     the order in two; the isolated nodes touch no edge); otherwise the graph is labelled by
     :func:`connected_components` (sparse graph, depth-first search).
     """
+    n_lags, m = edge.shape
     back = np.zeros(m, bool)  # node joined to an earlier node
-    fwd = np.zeros(m, bool)  # node joined to a later node
     over = np.zeros(m, bool)  # node strictly between the two ends of some edge
-    for i, lag in edges:
-        back[i + lag] = True
-        fwd[i] = True
+    for lag in range(1, n_lags + 1):
+        e = edge[lag - 1, :m - lag]  # (edges from the last lag nodes would leave the graph)
+        back[lag:] |= e
         for d in range(1, lag):
-            over[i + d] = True
+            over[d:m - lag + d] |= e
+    fwd = edge.any(axis=0)  # node joined to a later node
     starts = fwd & ~back
     if not np.any(starts & over):
         node = np.arange(m)
@@ -469,9 +472,8 @@ def _component_labels(m: int, edges: list[tuple[np.ndarray, int]]) -> np.ndarray
         alone = ~(fwd | back)
         first[alone] = node[alone]
         return (np.cumsum(starts | alone) - 1)[first]  # components by their first node
-    rows = np.concatenate([i for i, _ in edges]) if edges else np.zeros(0, int)
-    cols = np.concatenate([i + lag for i, lag in edges]) if edges else np.zeros(0, int)
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, m))
+    lag, rows = np.nonzero(edge)
+    graph = coo_matrix((np.ones(len(rows)), (rows, rows + lag + 1)), shape=(m, m))
     return connected_components(graph, directed=False)[1]
 
 
