@@ -317,30 +317,34 @@ def _ransac_masks(pieces: list[np.ndarray], sigma: float, rng: np.random.Generat
     pi = P[np.concatenate(first)]
     d = P[np.concatenate(second)] - pi
     ln = np.hypot(d[:, 0], d[:, 1])
+    hyp = np.empty((len(ln), 3))  # each hypothesis line as (normal, -offset)
     with np.errstate(divide="ignore", invalid="ignore"):  # (a pair of equal points: not used)
-        nrm = d[:, ::-1] * (-1.0, 1.0) / ln[:, None]  # (-dy, dx) / |d|
-    off = np.einsum("ij,ij->i", pi, nrm)
+        np.divide(d[:, ::-1] * (-1.0, 1.0), ln[:, None], out=hyp[:, :2])  # (-dy, dx) / |d|
+    hyp[:, 2] = -np.einsum("ij,ij->i", pi, hyp[:, :2])
+    P1 = np.column_stack([P, np.ones(len(P))])  # points as (x, y, 1)
     good = ln > 0
     n_good = np.add.reduceat(good, np.arange(0, len(good), trials), dtype=np.intp)
-    out, h = [], 0
+    count = np.uint16 if max(map(len, pieces)) < 2 ** 16 else np.intp  # (the smallest that fits)
+    out, h, start = [], 0, 0
     for q, d in zip(pieces, drawn):
+        n = len(q)
+        start += n
         if not d:
-            out.append(np.ones(len(q), bool))
+            out.append(np.ones(n, bool))
             continue
         rows = slice(h, h + trials)
         g = int(n_good[h // trials])
         h += trials
         if g == 0:
-            out.append(np.ones(len(q), bool))
+            out.append(np.ones(n, bool))
             continue
-        nr, of = nrm[rows], off[rows]
-        if g < trials:
-            nr, of = nr[good[rows]], of[good[rows]]
-        dist = nr @ q.T  # (hypotheses, n), then |dist - off| in place
-        dist -= of[:, None]
+        H = hyp[rows] if g == trials else hyp[rows][good[rows]]
+        # (hypotheses, n) signed distances n . p - offset in one product (the same sums as
+        # n . p then minus the offset), their absolute values in place
+        dist = H @ P1[start - n:start].T
         inl = np.abs(dist, out=dist) <= k * sigma
         # inliers per hypothesis: a row sum of bytes (count_nonzero along an axis is slower)
-        out.append(inl[int(np.argmax(inl.view(np.uint8).sum(axis=1, dtype=np.intp)))])
+        out.append(inl[int(np.argmax(inl.view(np.uint8).sum(axis=1, dtype=count)))])
     return out
 
 
