@@ -200,20 +200,27 @@ class _PieceScales:
     """Robust residual scales of TLS lines through pieces ``p[a:b]`` of one run of points,
     each line fitted once: the top-down split (:func:`_split_into_lines`) and the merge
     (:func:`_merge_collinear`) ask for the same pieces (a split's two halves are the next
-    level's pieces; a merge test of two halves is the split test that cut them)."""
+    level's pieces; a merge test of two halves is the split test that cut them). The robust
+    line of a final piece starts from the same TLS line when RANSAC keeps all its points
+    (:meth:`fitted`)."""
 
     def __init__(self, p: np.ndarray) -> None:
         self.p = p
-        self._resid: dict[tuple[int, int], np.ndarray] = {}
+        self._fit: dict[tuple[int, int], tuple[Line2D, np.ndarray]] = {}
         self._one: dict[tuple[int, int], float] = {}
         self._two: dict[tuple[int, int, int], float] = {}
 
     def residuals(self, a: int, b: int) -> np.ndarray:
         """Signed orthogonal residuals of ``p[a:b]`` to their TLS line."""
-        if (a, b) not in self._resid:
+        if (a, b) not in self._fit:
             q = self.p[a:b]
-            self._resid[a, b] = fit_line_2d(q).distance(q)
-        return self._resid[a, b]
+            line = fit_line_2d(q)
+            self._fit[a, b] = line, line.distance(q)
+        return self._fit[a, b][1]
+
+    def fitted(self, a: int, b: int) -> tuple[Line2D, np.ndarray] | None:
+        """The TLS line of ``p[a:b]`` and its residuals when the split or the merge fitted it."""
+        return self._fit.get((a, b))
 
     def one(self, a: int, b: int) -> float:
         """MAD scale of the residuals of one line through ``p[a:b]``."""
@@ -348,16 +355,27 @@ def _ransac_masks(pieces: list[np.ndarray], sigma: float, rng: np.random.Generat
     return out
 
 
-def _refine_line(p: np.ndarray, sigma: float, best: np.ndarray,
-                 k: float = 3.5) -> tuple[Line2D, np.ndarray, float]:
+def _refine_line(p: np.ndarray, sigma: float, best: np.ndarray, k: float = 3.5,
+                 fitted: tuple[Line2D, np.ndarray] | None = None
+                 ) -> tuple[Line2D, np.ndarray, float]:
     """Iterated TLS refit from the RANSAC inliers ``best``, threshold ``k`` x MAD scale, then
-    the levels of a staircase kept (:func:`_level_runs`): the line, its inliers, the scale."""
+    the levels of a staircase kept (:func:`_level_runs`): the line, its inliers, the scale.
+
+    ``fitted``: the TLS line of all of ``p`` and its residuals, if known (the split's); used
+    when RANSAC keeps every point (the first fit is then that line).
+    """
     mask = best
-    of_mask = np.count_nonzero(mask) >= 2  # ``line`` is the TLS line of ``p[mask]``
-    line = fit_line_2d(p[mask]) if of_mask else fit_line_2d(p)
+    n_in = np.count_nonzero(mask)
+    of_mask = n_in >= 2  # ``line`` is the TLS line of ``p[mask]``
+    resid = None  # ``line``'s residuals, when known
+    if n_in == len(p) and fitted is not None:
+        line, resid = fitted
+    else:  # (all points: the same fit without gathering them)
+        line = fit_line_2d(p if n_in == len(p) or not of_mask else p[mask])
     scale = sigma
     for _ in range(20):
-        r = np.abs(line.distance(p))
+        r = np.abs(line.distance(p) if resid is None else resid)
+        resid = None
         # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
         # re-estimating it from already-trimmed inliers
         scale = max(MAD_TO_SIGMA * _median(r), 0.25 * sigma)
@@ -522,17 +540,17 @@ def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
     rng = np.random.default_rng(0)
 
     labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
-    pieces = []  # (run label, beams of the piece, its points)
+    pieces = []  # (run label, beams of the piece, its points, its TLS line if fitted)
     for lab in np.flatnonzero(np.bincount(labels) >= min_points):  # (labels 0, 1, ...)
         beams = valid_idx[labels == lab]
         p = pts[beams]
         scales = _PieceScales(p)
         for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales):
-            pieces.append((int(lab), beams[a:b], p[a:b]))
+            pieces.append((int(lab), beams[a:b], p[a:b], scales.fitted(a, b)))
     segments: list[LineSegment] = []
-    ransac = _ransac_masks([q for _, _, q in pieces], sigma, rng)
-    for (lab, span, q), best in zip(pieces, ransac):
-        line, mask, scale = _refine_line(q, sigma, best)
+    ransac = _ransac_masks([q for _, _, q, _ in pieces], sigma, rng)
+    for (lab, span, q, fitted), best in zip(pieces, ransac):
+        line, mask, scale = _refine_line(q, sigma, best, fitted=fitted)
         if np.count_nonzero(mask) >= min_points:
             segments.append(LineSegment(span[mask], span, line, scale, q[mask], lab))
     segments.sort(key=lambda s: s.beams[0])
