@@ -50,7 +50,7 @@ from .scan_segments import (  # noqa: F401  (re-exported: the segmentation lives
 
 def intersect_lines_2d(a: Line2D, b: Line2D) -> np.ndarray:
     """The common point of two lines (2 x 2 linear system)."""
-    A = np.vstack([a.normal, b.normal])
+    A = np.array([a.normal, b.normal])
     if abs(np.linalg.det(A)) < 1e-9:
         raise ValueError("lines are parallel: no vertex")
     return np.linalg.solve(A, np.array([a.offset, b.offset]))

@@ -89,10 +89,11 @@ def estimate_range_quantum(range_mm: np.ndarray) -> float:
     """
     r = np.asarray(range_mm, dtype=float)
     r = r[np.isfinite(r) & (r > 0)]
-    u = np.unique(r)
-    if len(u) < 3:
+    gaps = np.diff(np.sort(r))
+    gaps = gaps[gaps > 0]  # between distinct ranges (np.diff(np.unique(r)))
+    if len(gaps) < 2:  # fewer than 3 distinct ranges
         return 0.0
-    q = float(np.min(np.diff(u)))
+    q = float(np.min(gaps))
     k = r / q
     if q <= 0 or np.mean(np.abs(k - np.round(k)) <= 1e-6) < 0.99:
         return 0.0
@@ -388,10 +389,11 @@ def _refine_line(p: np.ndarray, sigma: float, best: np.ndarray, k: float = 3.5,
         if same:
             break
         mask, of_mask = new, True
-    levels = _level_runs(p, line, mask, sigma)
-    if levels.any():
-        mask = mask | levels
-        line = fit_line_2d(p[mask])
+    if len(p) - np.count_nonzero(mask) >= _LEVEL_RUN:  # (else no run of rejected points)
+        levels = _level_runs(p, line, mask, sigma)
+        if levels.any():
+            mask = mask | levels
+            line = fit_line_2d(p[mask])
     return line, mask, float(scale)
 
 
