@@ -270,24 +270,27 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
 
     # hinge: the split between the two segments in beam order that fits the two lines best
     both = np.concatenate([s1.beams, s2.beams])
-    r1 = s1.line.distance(pts[both]) ** 2
-    r2 = s2.line.distance(pts[both]) ** 2
+    p_both = pts[both]
+    r1 = s1.line.distance(p_both) ** 2
+    r2 = s2.line.distance(p_both) ** 2
     cost = np.concatenate([[0.0], np.cumsum(r1)]) + np.concatenate([np.cumsum(r2[::-1])[::-1], [0.0]])
     k = int(np.argmin(cost))
     if min_points <= k <= len(both) - min_points:
         s1.beams, s2.beams = both[:k], both[k:]
+    else:
+        k = len(s1.beams)
     out = []
-    for s, from_start in ((s1, True), (s2, False)):
-        resid = s.line.distance(pts[s.beams])
+    for s, p_s, from_start in ((s1, p_both[:k], True), (s2, p_both[k:], False)):
+        resid = s.line.distance(p_s)  # (p_s: the points of s.beams)
         keep = _trim_outer(s.beams, resid, s.scale, from_start, max_trim)
         beams = s.beams[keep]
         span = np.arange(min(s.span[0], beams[0]), max(s.span[-1], beams[-1]) + 1)
         off_line = np.isfinite(rho[span])  # the returns in the span, less the kept beams
         off_line[beams - span[0]] = False
         rejected = span[off_line]
-        out.append((beams, rejected, s.scale))
-    (b1, r1, sc1), (b2, r2, sc2) = out
-    return VSegments(b1, b2, pts[b1], pts[b2], r1, r2, sigma, sc1, sc2, float(np.degrees(opening)),
+        out.append((beams, p_s[keep], rejected, s.scale))
+    (b1, p1, r1, sc1), (b2, p2, r2, sc2) = out
+    return VSegments(b1, b2, p1, p2, r1, r2, sigma, sc1, sc2, float(np.degrees(opening)),
                      info={"n_segments": len(segments), "n_candidates": len(candidates),
                            "segments": [(int(s.beams[0]), int(s.beams[-1])) for s in segments]})
 

@@ -95,7 +95,7 @@ def estimate_range_quantum(range_mm: np.ndarray) -> float:
         return 0.0
     q = float(np.min(gaps))
     k = r / q
-    if q <= 0 or np.mean(np.abs(k - np.round(k)) <= 1e-6) < 0.99:
+    if q <= 0 or np.count_nonzero(np.abs(k - np.round(k)) <= 1e-6) / len(k) < 0.99:  # (mean)
         return 0.0
     return q
 
@@ -156,11 +156,12 @@ def fit_line_2d(points: np.ndarray) -> Line2D:
     return Line2D(np.array([nx, ny]), nx * float(cx) + ny * float(cy))
 
 
-def _median(v: np.ndarray) -> float:
-    """``np.median`` of a finite 1-D array, by partition (no NaN handling)."""
+def _median(v: np.ndarray, overwrite: bool = False) -> float:
+    """``np.median`` of a finite 1-D array, by partition (no NaN handling); ``overwrite``:
+    ``v`` may be reordered (a temporary), else it is copied."""
     n = len(v)
     k = n // 2
-    w = v.copy()  # (the method on a copy: np.partition's dispatch costs as much as the work)
+    w = v if overwrite else v.copy()  # (the method: np.partition's dispatch costs as much)
     if n % 2:
         w.partition(k)
         return float(w[k])
@@ -194,7 +195,7 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
 
 def _mad_scale(r: np.ndarray) -> float:
     """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
-    return float(MAD_TO_SIGMA * _median(np.abs(r - _median(r))))
+    return float(MAD_TO_SIGMA * _median(np.abs(r - _median(r)), overwrite=True))
 
 
 class _PieceScales:
@@ -352,7 +353,7 @@ def _ransac_masks(pieces: list[np.ndarray], sigma: float, rng: np.random.Generat
         dist = H @ P1[start - n:start].T
         inl = np.abs(dist, out=dist) <= k * sigma
         # inliers per hypothesis: a row sum of bytes (count_nonzero along an axis is slower)
-        out.append(inl[int(np.argmax(inl.view(np.uint8).sum(axis=1, dtype=count)))])
+        out.append(inl[int(inl.view(np.uint8).sum(axis=1, dtype=count).argmax())])
     return out
 
 
