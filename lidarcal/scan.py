@@ -353,7 +353,7 @@ def _rays(line1: Line2D, line2: Line2D, p1: np.ndarray, p2: np.ndarray):
 
 def _residual_rms(line1: Line2D, line2: Line2D, p1: np.ndarray, p2: np.ndarray) -> float:
     r = np.concatenate([line1.distance(p1), line2.distance(p2)])
-    return float(np.sqrt(np.mean(r ** 2)))
+    return math.sqrt(np.add.reduce(r ** 2) / len(r))  # (np.mean's sum and division)
 
 
 def fit_v_lines_free(points1: np.ndarray, points2: np.ndarray) -> LidarLines:
@@ -406,7 +406,7 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
     if s not in (-1, 1):
         raise ValueError(f"sign must be -1 or +1, got {sign!r}")
     Q = _rot2(s * alpha)
-    m1, m2 = p1.mean(0), p2.mean(0)
+    m1, m2 = np.add.reduce(p1) / len(p1), np.add.reduce(p2) / len(p2)  # (as p.mean(0))
     d1, d2 = p1 - m1, p2 - m2
     S1, S2 = d1.T @ d1, d2.T @ d2
     _, V = np.linalg.eigh(S1 + Q.T @ S2 @ Q)
@@ -421,7 +421,7 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
                          f"{np.degrees(ray_angle):.2f} deg, lines at {np.degrees(alpha):.2f} deg); "
                          "check the segmentation and the sign")
     N = len(p1) + len(p2)
-    sse = float(np.sum(L1.distance(p1) ** 2) + np.sum(L2.distance(p2) ** 2))
+    sse = float(np.add.reduce(L1.distance(p1) ** 2) + np.add.reduce(L2.distance(p2) ** 2))
     # covariance of (phi, c1, c2) -> E (Gauss-Newton, residual variance)
     dn1 = np.array([-n1[1], n1[0]])
     dn2 = Q @ dn1
@@ -433,7 +433,7 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
     var = sse / max(N - 3, 1)
     try:
         cov_p = var * np.linalg.inv(J.T @ J)
-        A_inv = np.linalg.inv(np.vstack([n1, n2]))
+        A_inv = np.linalg.inv(np.array([n1, n2]))
         dE = np.column_stack([-A_inv @ np.array([dn1 @ E, dn2 @ E]), A_inv[:, 0], A_inv[:, 1]])
         E_cov = dE @ cov_p @ dE.T
     except np.linalg.LinAlgError:
