@@ -77,7 +77,9 @@ def estimate_range_noise(range_mm: np.ndarray) -> float:
     if len(d2) < 5:
         raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
                          "range noise; pass range_noise_mm")
-    return float(MAD_TO_SIGMA * _median(np.abs(d2 - _median(d2))) / np.sqrt(6.0))
+    # (the MAD ignores the order: d2, a temporary, is partitioned in place)
+    return float(MAD_TO_SIGMA * _median(np.abs(d2 - _median(d2, overwrite=True)), overwrite=True)
+                 / np.sqrt(6.0))
 
 
 def estimate_range_quantum(range_mm: np.ndarray) -> float:
@@ -93,9 +95,9 @@ def estimate_range_quantum(range_mm: np.ndarray) -> float:
     gaps = gaps[gaps > 0]  # between distinct ranges (np.diff(np.unique(r)))
     if len(gaps) < 2:  # fewer than 3 distinct ranges
         return 0.0
-    q = float(np.min(gaps))
+    q = float(gaps.min())
     k = r / q
-    if q <= 0 or np.count_nonzero(np.abs(k - np.round(k)) <= 1e-6) / len(k) < 0.99:  # (mean)
+    if q <= 0 or np.count_nonzero(np.abs(k - np.rint(k)) <= 1e-6) / len(k) < 0.99:  # (mean)
         return 0.0
     return q
 
