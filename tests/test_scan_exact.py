@@ -17,7 +17,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from vscan_truth import make_truth, simulate_scan
 
-from lidarcal.geometry import MAD_TO_SIGMA
+from lidarcal.geometry import MAD_TO_SIGMA, unit
 from lidarcal.io.dataset import load_dataset, read_scan
 from lidarcal.io.pairs import read_view_pairs
 from lidarcal.pose import pose_from_line_pairs, single_shot_pose
@@ -335,3 +335,13 @@ def test_single_shot_candidates_are_both_pairings():
         assert got.residual == ref.residual
         for key in ("raw_R", "angle_cam", "angle_lidar"):
             assert np.array_equal(got.info[key], ref.info[key])
+
+
+@pytest.mark.parametrize("shape", [(3,), (2, 3), (500, 3), (40, 2)])
+def test_unit_is_division_by_numpys_norm(shape):
+    """geometry.unit (its norm's sum without np.linalg.norm's wrapper) to the bit."""
+    rng = np.random.default_rng(len(shape))
+    v = rng.normal(size=shape) * 10.0 ** rng.uniform(-3, 4, shape[:-1] + (1,))
+    assert np.array_equal(unit(v), v / np.linalg.norm(v, axis=-1, keepdims=True))
+    with pytest.raises(ValueError, match="zero vector"):
+        unit(np.zeros(shape))
