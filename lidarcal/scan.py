@@ -75,19 +75,21 @@ def _unit2(v: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # V segmentation
 
-def _segment_ends(segments: list[LineSegment], pts: np.ndarray) -> dict[str, np.ndarray]:
+def _segment_ends(segments: list[LineSegment], pts: np.ndarray) -> np.ndarray:
     """Every segment's line (normal ``nx, ny``, offset ``c``), the feet of its first and last
     points on it (``fx, fy`` and ``gx, gy``) and the distance between those two points
-    (``length``): arrays over the segments, for :func:`_v_pairs`."""
+    (``length``): rows ``nx, ny, c, fx, fy, gx, gy, length`` over the segments (columns),
+    for :func:`_v_pairs`."""
     nx, ny = np.array([sg.line.normal for sg in segments]).T
     c = np.array([sg.line.offset for sg in segments], dtype=float)
-    p0 = pts[[sg.beams[0] for sg in segments]]
-    p1 = pts[[sg.beams[-1] for sg in segments]]
-    out = {"nx": nx, "ny": ny, "c": c, "length": np.hypot(*(p1 - p0).T)}
-    for name, (x, y) in (("f", p0.T), ("g", p1.T)):
-        r = x * nx + y * ny - c
-        out[name + "x"], out[name + "y"] = x - r * nx, y - r * ny
-    return out
+    ends = pts[[sg.beams[0] for sg in segments] + [sg.beams[-1] for sg in segments]]
+    x, y = ends.T  # first points, then last points
+    n2x, n2y, c2 = np.tile(nx, 2), np.tile(ny, 2), np.tile(c, 2)
+    r = x * n2x + y * n2y - c2
+    fx, fy = x - r * n2x, y - r * n2y
+    S = len(segments)
+    return np.array([nx, ny, c, fx[:S], fy[:S], fx[S:], fy[S:],
+                     np.hypot(x[S:] - x[:S], y[S:] - y[:S])])
 
 
 def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: float,
@@ -103,29 +105,28 @@ def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: 
     them); segments between the two in beam order must lie farther than E (seen through a
     gap at the hinge).
     """
-    e = _segment_ends(segments, pts)
     ii, jj = [], []
     for i in range(len(segments)):
         for j in range(i + 1, min(i + 4, len(segments))):
             ii.append(i)
             jj.append(j)
     i, j = np.array(ii, dtype=int), np.array(jj, dtype=int)
-    n1x, n1y, c1 = e["nx"][i], e["ny"][i], e["c"][i]
-    n2x, n2y, c2 = e["nx"][j], e["ny"][j], e["c"][j]
+    e = _segment_ends(segments, pts)
+    # f1: foot of segment 1's first point, g1: of its last (inner end); h2: foot of
+    # segment 2's first point (inner end), f2: of its last
+    n1x, n1y, c1, f1x, f1y, g1x, g1y, len1 = e[:, i]
+    n2x, n2y, c2, h2x, h2y, f2x, f2y, len2 = e[:, j]
     with np.errstate(divide="ignore", invalid="ignore"):
         det = n1x * n2y - n1y * n2x
         Ex, Ey = (c1 * n2y - n1y * c2) / det, (n1x * c2 - c1 * n2x) / det
-        # f1: foot of segment 1's first point, g1: of its last (inner end); h2: foot of
-        # segment 2's first point (inner end), f2: of its last
-        d1x, d1y = e["fx"][i] - Ex, e["fy"][i] - Ey
-        d2x, d2y = e["gx"][j] - Ex, e["gy"][j] - Ey
+        d1x, d1y = f1x - Ex, f1y - Ey
+        d2x, d2y = f2x - Ex, f2y - Ey
         m1, m2 = np.hypot(d1x, d1y), np.hypot(d2x, d2y)
         l1x, l1y, l2x, l2y = d1x / m1, d1y / m1, d2x / m2, d2y / m2
         cross = l1x * l2y - l1y * l2x
         opening = np.arctan2(np.abs(cross), l1x * l2x + l1y * l2y)
-        gap1 = (e["gx"][i] - Ex) * l1x + (e["gy"][i] - Ey) * l1y  # inner end of 1, along l1
-        gap2 = (e["fx"][j] - Ex) * l2x + (e["fy"][j] - Ey) * l2y
-        len1, len2 = e["length"][i], e["length"][j]
+        gap1 = (g1x - Ex) * l1x + (g1y - Ey) * l1y  # inner end of 1, along l1
+        gap2 = (h2x - Ex) * l2x + (h2y - Ey) * l2y
         ok = ((np.abs(det) >= 1e-9) & (m1 != 0) & (m2 != 0)  # a vertex, not at a segment end
               & (cross < 0) & (lo <= opening) & (opening <= hi)  # concave, opening in range
               & (-0.1 * len1 <= gap1) & (gap1 <= 0.25 * len1)
