@@ -341,7 +341,7 @@ class LidarLines:
 
 def _check_points(p: np.ndarray, name: str) -> np.ndarray:
     p = np.asarray(p, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2 or not np.all(np.isfinite(p)):
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2 or not np.isfinite(p).all():
         raise ValueError(f"{name} must be finite points with shape (N >= 2, 2), got {p.shape}")
     return p
 

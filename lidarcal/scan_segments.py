@@ -60,7 +60,10 @@ def scan_points(angle_deg: np.ndarray, range_mm: np.ndarray) -> np.ndarray:
         raise ValueError(f"angle_deg and range_mm must be 1-D of equal length, got {a.shape} "
                          f"and {r.shape}")
     r = np.where(np.isfinite(r) & (r > 0), r, np.nan)
-    return np.column_stack([r * np.cos(a), r * np.sin(a)])
+    pts = np.empty((len(r), 2))
+    np.multiply(r, np.cos(a), out=pts[:, 0])
+    np.multiply(r, np.sin(a), out=pts[:, 1])
+    return pts
 
 
 def estimate_range_noise(range_mm: np.ndarray) -> float:
@@ -384,15 +387,17 @@ def _refine_line(p: np.ndarray, sigma: float, best: np.ndarray, k: float = 3.5,
         # re-estimating it from already-trimmed inliers
         scale = max(MAD_TO_SIGMA * _median(r), 0.25 * sigma)
         new = r <= k * scale
-        if np.count_nonzero(new) < 2:
+        n_new = np.count_nonzero(new)
+        if n_new < 2:
             break
-        same = bool((new == mask).all())  # (np.array_equal of two boolean masks)
+        # the same inliers (np.array_equal): as many, and every point or the same points
+        same = n_new == n_in and (n_new == len(p) or bool((new == mask).all()))
         if not (same and of_mask):  # (a refit of the same points would give this line again)
-            line = fit_line_2d(p[new])
+            line = fit_line_2d(p if n_new == len(p) else p[new])
         if same:
             break
-        mask, of_mask = new, True
-    if len(p) - np.count_nonzero(mask) >= _LEVEL_RUN:  # (else no run of rejected points)
+        mask, of_mask, n_in = new, True, n_new
+    if len(p) - n_in >= _LEVEL_RUN:  # (else no run of rejected points)
         levels = _level_runs(p, line, mask, sigma)
         if levels.any():
             mask = mask | levels
