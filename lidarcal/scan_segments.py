@@ -33,6 +33,7 @@ _SPLIT_GAIN = 0.5
 _LEVEL_RUN = 4  # consecutive beams off the line at one level: a square, not an outlier
 #: Minimum inliers on a straight piece.
 MIN_POINTS = 8
+_SEED = np.random.SeedSequence(0)  # the RANSAC draws of every scan: default_rng(0)'s
 
 
 # ---------------------------------------------------------------------------
@@ -178,7 +179,7 @@ def _median(v: np.ndarray, overwrite: bool = False) -> float:
 
 def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """TLS sum of squared orthogonal residuals of p[:k] + p[k:] for k in [lo, hi) (prefix sums)."""
-    q = p - p.mean(0)
+    q = p - np.add.reduce(p) / len(p)  # (p.mean(0))
     n = len(q)
 
     def sse(cnt, sx, sy, sxx, sxy, syy):
@@ -547,7 +548,7 @@ def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
     if sigma < 1e-6 * r_valid.max():  # (else the floor, a millionth of the median range, is lower)
         sigma = max(sigma, 1e-6 * _median(r_valid))
     dtheta = _median(np.diff(np.radians(ang)))
-    rng = np.random.default_rng(0)
+    rng = np.random.Generator(np.random.PCG64(_SEED))  # np.random.default_rng(0)
 
     labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
     pieces = []  # (run label, beams of the piece, its points, its TLS line if fitted)
