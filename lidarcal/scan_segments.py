@@ -321,9 +321,9 @@ def _ransac_masks(pieces: list[np.ndarray], sigma: float, rng: np.random.Generat
     if not any(drawn):
         return [np.ones(len(q), bool) for q in pieces]
     first, second, start = [], [], 0  # pair indices into the pieces' concatenated points
-    for q, d in zip(pieces, drawn):
+    for q, drew in zip(pieces, drawn):
         n = len(q)
-        if d:
+        if drew:
             i = rng.integers(n, size=trials)
             first.append(start + i)
             second.append(start + (i + rng.integers(1, n, size=trials)) % n)
@@ -341,10 +341,10 @@ def _ransac_masks(pieces: list[np.ndarray], sigma: float, rng: np.random.Generat
     n_good = np.add.reduceat(good, np.arange(0, len(good), trials), dtype=np.intp)
     count = np.uint16 if max(map(len, pieces)) < 2 ** 16 else np.intp  # (the smallest that fits)
     out, h, start = [], 0, 0
-    for q, d in zip(pieces, drawn):
+    for q, drew in zip(pieces, drawn):
         n = len(q)
         start += n
-        if not d:
+        if not drew:
             out.append(np.ones(n, bool))
             continue
         rows = slice(h, h + trials)
