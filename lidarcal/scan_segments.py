@@ -191,11 +191,12 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
         return np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
 
     x, y = q[:, 0], q[:, 1]
-    cs = np.zeros((n + 1, 5))  # cs[i]: the moments of p[:i]
-    np.cumsum(np.column_stack([x, y, x * x, x * y, y * y]), axis=0, out=cs[1:])
+    cs = np.zeros((5, n + 1))  # cs[:, i]: the moments of p[:i], one contiguous row each
+    np.cumsum(np.array([x, y, x * x, x * y, y * y]), axis=1, out=cs[:, 1:])
     k = np.arange(lo, hi)
-    left = cs[k]  # moments of p[:k], then of p[k:]: both sides in one pass
-    both = sse(np.concatenate([k, n - k]).astype(float), *np.vstack([left, cs[-1] - left]).T)
+    left = cs[:, lo:hi]  # moments of p[:k], then of p[k:]: both sides in one pass
+    both = sse(np.concatenate([k, n - k]).astype(float),
+               *np.concatenate([left, cs[:, -1:] - left], axis=1))
     return both[:len(k)] + both[len(k):]
 
 
