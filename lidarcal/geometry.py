@@ -28,8 +28,8 @@ def as_points(points: np.ndarray, dim: int = 3) -> np.ndarray:
 def unit(v: np.ndarray) -> np.ndarray:
     """Normalise vector(s) along the last axis."""
     v = np.asarray(v, dtype=float)
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    if np.any(n == 0):
+    n = np.sqrt(np.add.reduce(v * v, axis=-1, keepdims=True))  # np.linalg.norm's, unwrapped
+    if (n == 0).any():
         raise ValueError("Cannot normalise a zero vector")
     return v / n
 

@@ -48,7 +48,7 @@ from .io.dataset import (
     write_json_atomic,
 )
 from .pose import single_shot_pose
-from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
+from .scan import LidarLines, VSegments, fit_v_lines, split_v
 from .stripe import (
     CameraLines,
     camera_lines,
@@ -144,8 +144,7 @@ def solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView, 
     ang, rng = read_scan(pos.scan, lidar)
     try:
         seg = split_v(ang, rng, alpha=cl.alpha)
-        pts = scan_points(ang, rng)
-        ll = fit_v_lines(pts[seg.first], pts[seg.second], cl.alpha)
+        ll = fit_v_lines(seg.points1, seg.points2, cl.alpha)  # (the eq. 6 points of the beams)
     except ValueError as e:
         raise DatasetError(pos.scan, f"{e}; check this position or drop it with "
                                      f"--skip {pos.index}") from None

@@ -43,6 +43,15 @@ def pose_from_line_pairs(l_cam: np.ndarray, l_lidar: np.ndarray, E_cam: np.ndarr
     E_cam, E_lidar : arrays, shape (3,)
         The lines' common point in each frame, mm.
     """
+    lc, ll, Ec, El = _checked_pairs(l_cam, l_lidar, E_cam, E_lidar)
+    return _pose_from_frames(_frame(lc), _frame(ll), Ec, El,
+                             {"angle_cam": angle_between(lc[0], lc[1]),
+                              "angle_lidar": angle_between(ll[0], ll[1])})
+
+
+def _checked_pairs(l_cam: np.ndarray, l_lidar: np.ndarray, E_cam: np.ndarray,
+                   E_lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The inputs of :func:`pose_from_line_pairs` checked, as float arrays, directions unit."""
     lc = np.asarray(l_cam, dtype=float)
     ll = np.asarray(l_lidar, dtype=float)
     if lc.shape != (2, 3) or ll.shape != (2, 3):
@@ -50,16 +59,24 @@ def pose_from_line_pairs(l_cam: np.ndarray, l_lidar: np.ndarray, E_cam: np.ndarr
                          f"{ll.shape}")
     Ec = np.asarray(E_cam, dtype=float).reshape(3)
     El = np.asarray(E_lidar, dtype=float).reshape(3)
-    lc, ll = unit(lc), unit(ll)
-    C = np.column_stack([lc[0], lc[1], cross3(lc[0], lc[1])])
-    L = np.column_stack([ll[0], ll[1], cross3(ll[0], ll[1])])
+    return unit(lc), unit(ll), Ec, El
+
+
+def _frame(l: np.ndarray) -> np.ndarray:
+    """``[l1 l2 l1 x l2]`` (columns) of two unit directions (rows of ``l``), for eq. (13)."""
+    return np.column_stack([l[0], l[1], cross3(l[0], l[1])])
+
+
+def _pose_from_frames(C: np.ndarray, L: np.ndarray, Ec: np.ndarray, El: np.ndarray,
+                      angles: dict[str, float]) -> Pose:
+    """Eqs. (13)-(14) from the frames of :func:`_frame` in the camera (``C``) and the LiDAR
+    (``L``); ``angles`` (each pair's angle) go to ``info``."""
     if abs(np.linalg.det(L)) < 1e-9 or abs(np.linalg.det(C)) < 1e-9:
         raise ValueError("the two lines are parallel: eq. (13) has no solution")
     M = C @ np.linalg.inv(L)  # eq. (13)
     R, resid = nearest_rotation(M)
     T = Ec - R @ El  # eq. (14)
-    return Pose(R, T, resid, info={"raw_R": M, "angle_cam": angle_between(lc[0], lc[1]),
-                                   "angle_lidar": angle_between(ll[0], ll[1])})
+    return Pose(R, T, resid, info={"raw_R": M, **angles})
 
 
 def single_shot_pose(l_cam: np.ndarray, E_cam: np.ndarray, alpha_cam: float,
@@ -98,10 +115,14 @@ def single_shot_pose(l_cam: np.ndarray, E_cam: np.ndarray, alpha_cam: float,
                          f"camera's alpha is {np.degrees(alpha_cam):.4f} deg; fit them with "
                          "fit_v_lines(points1, points2, alpha_cam)")
     hint = unit(np.asarray(z_axis_hint, dtype=float))
-    ll = lidar_lines.l_lidar
-    El = lidar_lines.E_lidar
-    cands = {"direct": pose_from_line_pairs(l_cam, ll, E_cam, El),
-             "swapped": pose_from_line_pairs(l_cam, ll[::-1], E_cam, El)}
+    # both pairings share the camera frame and the angles (swapping the scan lines only
+    # reverses their order): eqs. (13)-(14) as pose_from_line_pairs, the common part once
+    lc, ll, Ec, El = _checked_pairs(l_cam, lidar_lines.l_lidar, E_cam, lidar_lines.E_lidar)
+    C = _frame(lc)
+    angles = {"angle_cam": angle_between(lc[0], lc[1]),
+              "angle_lidar": angle_between(ll[0], ll[1])}
+    cands = {"direct": _pose_from_frames(C, _frame(ll), Ec, El, angles),
+             "swapped": _pose_from_frames(C, _frame(ll[::-1]), Ec, El, angles)}
     dots = {k: float(p.z_axis @ hint) for k, p in cands.items()}
     best = max(dots, key=dots.get)
     p = cands[best]

@@ -26,6 +26,7 @@ it on ray-cast scans.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +34,7 @@ import numpy as np
 from .scan_segments import (  # noqa: F401  (re-exported: the segmentation lives there)
     Line2D,
     LineSegment,
+    _line_segments,
     _median,
     effective_range_noise,
     estimate_range_noise,
@@ -48,7 +50,7 @@ from .scan_segments import (  # noqa: F401  (re-exported: the segmentation lives
 
 def intersect_lines_2d(a: Line2D, b: Line2D) -> np.ndarray:
     """The common point of two lines (2 x 2 linear system)."""
-    A = np.vstack([a.normal, b.normal])
+    A = np.array([a.normal, b.normal])
     if abs(np.linalg.det(A)) < 1e-9:
         raise ValueError("lines are parallel: no vertex")
     return np.linalg.solve(A, np.array([a.offset, b.offset]))
@@ -64,7 +66,7 @@ def _cross2(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _unit2(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v)
+    n = math.sqrt(float(v @ v))  # np.linalg.norm(v), as it computes it
     if n == 0:
         raise ValueError("degenerate V: a segment end coincides with the vertex")
     return v / n
@@ -73,18 +75,80 @@ def _unit2(v: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # V segmentation
 
-def _segment_ends(seg: LineSegment, pts: np.ndarray):
-    """A segment's line (normal, offset), the feet of its first and last points on it, and
-    the distance between those two points (floats, for :func:`split_v`'s pair test)."""
-    nx, ny = (float(v) for v in seg.line.normal)
-    c = float(seg.line.offset)
-    feet = []
-    for b in (seg.beams[0], seg.beams[-1]):
-        x, y = float(pts[b, 0]), float(pts[b, 1])
-        r = x * nx + y * ny - c
-        feet.append((x - r * nx, y - r * ny))
-    p0, p1 = pts[seg.beams[0]], pts[seg.beams[-1]]
-    return (nx, ny), c, feet[0], feet[1], float(np.hypot(*(p1 - p0)))
+def _segment_ends(segments: list[LineSegment], pts: np.ndarray) -> np.ndarray:
+    """Every segment's line (normal ``nx, ny``, offset ``c``), the feet of its first and last
+    points on it (``fx, fy`` and ``gx, gy``) and the distance between those two points
+    (``length``): rows ``nx, ny, c, fx, fy, gx, gy, length`` over the segments (columns),
+    for :func:`_v_pairs`."""
+    nx, ny = np.array([sg.line.normal for sg in segments]).T
+    c = np.array([sg.line.offset for sg in segments], dtype=float)
+    ends = pts[[sg.beams[0] for sg in segments] + [sg.beams[-1] for sg in segments]]
+    x, y = ends.T  # first points, then last points
+    n2x, n2y, c2 = np.tile(nx, 2), np.tile(ny, 2), np.tile(c, 2)
+    r = x * n2x + y * n2y - c2
+    fx, fy = x - r * n2x, y - r * n2y
+    S = len(segments)
+    return np.array([nx, ny, c, fx[:S], fy[:S], fx[S:], fy[S:],
+                     np.hypot(x[S:] - x[:S], y[S:] - y[:S])])
+
+
+def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: float,
+             hi: float, alpha: float | None, alpha_tol_deg: float) -> list[tuple]:
+    """Step (4) of :func:`split_v`: the pairs of segments that form the V, as ``(points,
+    segment 1, segment 2, opening)`` in beam order of segment 1, then of segment 2.
+
+    Every pair of segments at most 3 apart in beam order is tested at once (arrays over the
+    pairs): the lines' vertex E, the eq. (12) rays l1 (E to the foot of segment 1's first
+    point) and l2 (E to the foot of segment 2's last point), a concave turn (``z . (l1 x l2)
+    < 0``) with an opening in ``[lo, hi]`` rad (and within ``alpha_tol_deg`` of ``alpha``),
+    the vertex at the inner ends (at most 10 % beyond them into a segment, 25 % short of
+    them); segments between the two in beam order must lie farther than E (seen through a
+    gap at the hinge).
+    """
+    ii, jj = [], []
+    for i in range(len(segments)):
+        for j in range(i + 1, min(i + 4, len(segments))):
+            ii.append(i)
+            jj.append(j)
+    i, j = np.array(ii, dtype=int), np.array(jj, dtype=int)
+    e = _segment_ends(segments, pts)
+    # f1: foot of segment 1's first point, g1: of its last (inner end); h2: foot of
+    # segment 2's first point (inner end), f2: of its last
+    n1x, n1y, c1, f1x, f1y, g1x, g1y, len1 = e[:, i]
+    n2x, n2y, c2, h2x, h2y, f2x, f2y, len2 = e[:, j]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = n1x * n2y - n1y * n2x
+        Ex, Ey = (c1 * n2y - n1y * c2) / det, (n1x * c2 - c1 * n2x) / det
+        d1x, d1y = f1x - Ex, f1y - Ey
+        d2x, d2y = f2x - Ex, f2y - Ey
+        m1, m2 = np.hypot(d1x, d1y), np.hypot(d2x, d2y)
+        l1x, l1y, l2x, l2y = d1x / m1, d1y / m1, d2x / m2, d2y / m2
+        cross = l1x * l2y - l1y * l2x
+        opening = np.arctan2(np.abs(cross), l1x * l2x + l1y * l2y)
+        gap1 = (g1x - Ex) * l1x + (g1y - Ey) * l1y  # inner end of 1, along l1
+        gap2 = (h2x - Ex) * l2x + (h2y - Ey) * l2y
+        ok = ((np.abs(det) >= 1e-9) & (m1 != 0) & (m2 != 0)  # a vertex, not at a segment end
+              & (cross < 0) & (lo <= opening) & (opening <= hi)  # concave, opening in range
+              & (-0.1 * len1 <= gap1) & (gap1 <= 0.25 * len1)
+              & (-0.1 * len2 <= gap2) & (gap2 <= 0.25 * len2))
+        if alpha is not None:
+            ok &= ~(np.abs(opening - alpha) > np.radians(alpha_tol_deg))
+    med_rho: dict[int, float] = {}
+
+    def median_range(m: int) -> float:  # a segment's median range, when asked
+        if m not in med_rho:
+            med_rho[m] = _median(rho[segments[m].beams])
+        return med_rho[m]
+
+    candidates = []
+    for k in np.flatnonzero(ok):
+        a, b = int(i[k]), int(j[k])
+        rE = np.hypot(Ex[k], Ey[k])
+        if not all(median_range(m) > rE for m in range(a + 1, b)):
+            continue
+        candidates.append((len(segments[a].beams) + len(segments[b].beams), segments[a],
+                           segments[b], float(opening[k])))
+    return candidates
 
 
 @dataclass(frozen=True)
@@ -186,8 +250,7 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
     if n_valid < 2 * min_points:
         raise ValueError(f"scan has {n_valid} returns; need at least {2 * min_points} "
                          "to find the two board segments")
-    segments, sigma = line_segments(ang, range_mm, range_noise_mm=range_noise_mm,
-                                    min_points=min_points, max_gap=max_gap)
+    segments, sigma = _line_segments(ang, pts, rho, range_noise_mm, min_points, max_gap)
 
     if len(segments) < 2:
         raise ValueError(f"found {len(segments)} board segment{'s' if len(segments) != 1 else ''}, "
@@ -197,42 +260,7 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         opening_deg = ((max(1.0, np.degrees(alpha) - alpha_tol_deg), min(179.0, np.degrees(alpha) + alpha_tol_deg))
                        if alpha is not None else (90.0, 170.0))
     lo, hi = np.radians(opening_deg)
-    candidates = []
-    ends = [_segment_ends(sg, pts) for sg in segments]
-    med_rho: dict[int, float] = {}  # a segment's median range, when asked (``behind``)
-    for i in range(len(segments)):
-        for j in range(i + 1, min(i + 4, len(segments))):
-            s1, s2 = segments[i], segments[j]
-            (n1, c1, f1, g1, len1), (n2, c2, h2, f2, len2) = ends[i], ends[j]
-            # f1: foot of segment 1's first point, g1: of its last (inner end); h2: foot of
-            # segment 2's first point (inner end), f2: of its last
-            det = n1[0] * n2[1] - n1[1] * n2[0]
-            if abs(det) < 1e-9:
-                continue  # parallel: no vertex
-            E = ((c1 * n2[1] - n1[1] * c2) / det, (n1[0] * c2 - c1 * n2[0]) / det)
-            d1 = (f1[0] - E[0], f1[1] - E[1])
-            d2 = (f2[0] - E[0], f2[1] - E[1])
-            m1, m2 = np.hypot(*d1), np.hypot(*d2)
-            if m1 == 0 or m2 == 0:
-                continue  # degenerate V: a segment end coincides with the vertex
-            l1, l2 = (d1[0] / m1, d1[1] / m1), (d2[0] / m2, d2[1] / m2)
-            cross = l1[0] * l2[1] - l1[1] * l2[0]
-            opening = float(np.arctan2(abs(cross), l1[0] * l2[0] + l1[1] * l2[1]))
-            if not (cross < 0 and lo <= opening <= hi):  # concave, opening in range
-                continue
-            # the vertex must sit at the inner ends: not beyond them into either segment
-            gap1 = (g1[0] - E[0]) * l1[0] + (g1[1] - E[1]) * l1[1]  # inner end of 1, along l1
-            gap2 = (h2[0] - E[0]) * l2[0] + (h2[1] - E[1]) * l2[1]
-            if not ((-0.1 * len1 <= gap1 <= 0.25 * len1) and (-0.1 * len2 <= gap2 <= 0.25 * len2)):
-                continue
-            if alpha is not None and abs(opening - alpha) > np.radians(alpha_tol_deg):
-                continue
-            # segments between the two in beam order must be seen through a gap at the hinge
-            rE = np.hypot(*E)
-            if not all(med_rho.setdefault(b, _median(rho[segments[b].beams])) > rE
-                       for b in range(i + 1, j)):
-                continue
-            candidates.append((len(s1.beams) + len(s2.beams), s1, s2, opening))
+    candidates = _v_pairs(segments, pts, rho, lo, hi, alpha, alpha_tol_deg)
     if not candidates:
         raise ValueError(f"found {len(segments)} line segments but no pair forms the V "
                          f"(adjacent, concave, opening {opening_deg[0]:.0f}-{opening_deg[1]:.0f} deg"
@@ -243,24 +271,27 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
 
     # hinge: the split between the two segments in beam order that fits the two lines best
     both = np.concatenate([s1.beams, s2.beams])
-    r1 = s1.line.distance(pts[both]) ** 2
-    r2 = s2.line.distance(pts[both]) ** 2
+    p_both = pts[both]
+    r1 = s1.line.distance(p_both) ** 2
+    r2 = s2.line.distance(p_both) ** 2
     cost = np.concatenate([[0.0], np.cumsum(r1)]) + np.concatenate([np.cumsum(r2[::-1])[::-1], [0.0]])
     k = int(np.argmin(cost))
     if min_points <= k <= len(both) - min_points:
         s1.beams, s2.beams = both[:k], both[k:]
+    else:
+        k = len(s1.beams)
     out = []
-    for s, from_start in ((s1, True), (s2, False)):
-        resid = s.line.distance(pts[s.beams])
+    for s, p_s, from_start in ((s1, p_both[:k], True), (s2, p_both[k:], False)):
+        resid = s.line.distance(p_s)  # (p_s: the points of s.beams)
         keep = _trim_outer(s.beams, resid, s.scale, from_start, max_trim)
         beams = s.beams[keep]
         span = np.arange(min(s.span[0], beams[0]), max(s.span[-1], beams[-1]) + 1)
         off_line = np.isfinite(rho[span])  # the returns in the span, less the kept beams
         off_line[beams - span[0]] = False
         rejected = span[off_line]
-        out.append((beams, rejected, s.scale))
-    (b1, r1, sc1), (b2, r2, sc2) = out
-    return VSegments(b1, b2, pts[b1], pts[b2], r1, r2, sigma, sc1, sc2, float(np.degrees(opening)),
+        out.append((beams, p_s[keep], rejected, s.scale))
+    (b1, p1, r1, sc1), (b2, p2, r2, sc2) = out
+    return VSegments(b1, b2, p1, p2, r1, r2, sigma, sc1, sc2, float(np.degrees(opening)),
                      info={"n_segments": len(segments), "n_candidates": len(candidates),
                            "segments": [(int(s.beams[0]), int(s.beams[-1])) for s in segments]})
 
@@ -310,7 +341,7 @@ class LidarLines:
 
 def _check_points(p: np.ndarray, name: str) -> np.ndarray:
     p = np.asarray(p, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2 or not np.all(np.isfinite(p)):
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2 or not np.isfinite(p).all():
         raise ValueError(f"{name} must be finite points with shape (N >= 2, 2), got {p.shape}")
     return p
 
@@ -323,7 +354,7 @@ def _rays(line1: Line2D, line2: Line2D, p1: np.ndarray, p2: np.ndarray):
 
 def _residual_rms(line1: Line2D, line2: Line2D, p1: np.ndarray, p2: np.ndarray) -> float:
     r = np.concatenate([line1.distance(p1), line2.distance(p2)])
-    return float(np.sqrt(np.mean(r ** 2)))
+    return math.sqrt(np.add.reduce(r ** 2) / len(r))  # (np.mean's sum and division)
 
 
 def fit_v_lines_free(points1: np.ndarray, points2: np.ndarray) -> LidarLines:
@@ -332,7 +363,11 @@ def fit_v_lines_free(points1: np.ndarray, points2: np.ndarray) -> LidarLines:
     The unconstrained fit: the angle between the rays is whatever the data say,
     so eq. (13) would not give a rotation. Used to initialise and to compare.
     """
-    p1, p2 = _check_points(points1, "points1"), _check_points(points2, "points2")
+    return _fit_free(_check_points(points1, "points1"), _check_points(points2, "points2"))
+
+
+def _fit_free(p1: np.ndarray, p2: np.ndarray) -> LidarLines:
+    """:func:`fit_v_lines_free` of checked points."""
     L1, L2 = fit_line_2d(p1), fit_line_2d(p2)
     E, l1, l2 = _rays(L1, L2, p1, p2)
     ang = float(np.arctan2(abs(_cross2(l1, l2)), l1 @ l2))
@@ -367,14 +402,14 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
     p1, p2 = _check_points(points1, "points1"), _check_points(points2, "points2")
     if not 0 < alpha < np.pi:
         raise ValueError(f"alpha must be in (0, pi) rad, got {alpha!r}")
-    free = fit_v_lines_free(p1, p2)
+    free = _fit_free(p1, p2)
     s = free.sign if sign is None else int(np.sign(sign))
     if s not in (-1, 1):
         raise ValueError(f"sign must be -1 or +1, got {sign!r}")
     Q = _rot2(s * alpha)
-    m1, m2 = p1.mean(0), p2.mean(0)
-    S1 = (p1 - m1).T @ (p1 - m1)
-    S2 = (p2 - m2).T @ (p2 - m2)
+    m1, m2 = np.add.reduce(p1) / len(p1), np.add.reduce(p2) / len(p2)  # (as p.mean(0))
+    d1, d2 = p1 - m1, p2 - m2
+    S1, S2 = d1.T @ d1, d2.T @ d2
     _, V = np.linalg.eigh(S1 + Q.T @ S2 @ Q)
     n1 = V[:, 0]
     n2 = Q @ n1
@@ -387,7 +422,7 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
                          f"{np.degrees(ray_angle):.2f} deg, lines at {np.degrees(alpha):.2f} deg); "
                          "check the segmentation and the sign")
     N = len(p1) + len(p2)
-    sse = float(np.sum(L1.distance(p1) ** 2) + np.sum(L2.distance(p2) ** 2))
+    sse = float(np.add.reduce(L1.distance(p1) ** 2) + np.add.reduce(L2.distance(p2) ** 2))
     # covariance of (phi, c1, c2) -> E (Gauss-Newton, residual variance)
     dn1 = np.array([-n1[1], n1[0]])
     dn2 = Q @ dn1
@@ -399,7 +434,7 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
     var = sse / max(N - 3, 1)
     try:
         cov_p = var * np.linalg.inv(J.T @ J)
-        A_inv = np.linalg.inv(np.vstack([n1, n2]))
+        A_inv = np.linalg.inv(np.array([n1, n2]))
         dE = np.column_stack([-A_inv @ np.array([dn1 @ E, dn2 @ E]), A_inv[:, 0], A_inv[:, 1]])
         E_cov = dE @ cov_p @ dE.T
     except np.linalg.LinAlgError:

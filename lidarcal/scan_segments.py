@@ -16,6 +16,7 @@ edges). Beams are in ascending angle order. :mod:`lidarcal.scan` re-exports the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,7 @@ _SPLIT_GAIN = 0.5
 _LEVEL_RUN = 4  # consecutive beams off the line at one level: a square, not an outlier
 #: Minimum inliers on a straight piece.
 MIN_POINTS = 8
+_SEED = np.random.SeedSequence(0)  # the RANSAC draws of every scan: default_rng(0)'s
 
 
 # ---------------------------------------------------------------------------
@@ -59,7 +61,10 @@ def scan_points(angle_deg: np.ndarray, range_mm: np.ndarray) -> np.ndarray:
         raise ValueError(f"angle_deg and range_mm must be 1-D of equal length, got {a.shape} "
                          f"and {r.shape}")
     r = np.where(np.isfinite(r) & (r > 0), r, np.nan)
-    return np.column_stack([r * np.cos(a), r * np.sin(a)])
+    pts = np.empty((len(r), 2))
+    np.multiply(r, np.cos(a), out=pts[:, 0])
+    np.multiply(r, np.sin(a), out=pts[:, 1])
+    return pts
 
 
 def estimate_range_noise(range_mm: np.ndarray) -> float:
@@ -76,7 +81,9 @@ def estimate_range_noise(range_mm: np.ndarray) -> float:
     if len(d2) < 5:
         raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
                          "range noise; pass range_noise_mm")
-    return float(MAD_TO_SIGMA * _median(np.abs(d2 - _median(d2))) / np.sqrt(6.0))
+    # (the MAD ignores the order: d2, a temporary, is partitioned in place)
+    return float(MAD_TO_SIGMA * _median(np.abs(d2 - _median(d2, overwrite=True)), overwrite=True)
+                 / np.sqrt(6.0))
 
 
 def estimate_range_quantum(range_mm: np.ndarray) -> float:
@@ -88,12 +95,13 @@ def estimate_range_quantum(range_mm: np.ndarray) -> float:
     """
     r = np.asarray(range_mm, dtype=float)
     r = r[np.isfinite(r) & (r > 0)]
-    u = np.unique(r)
-    if len(u) < 3:
+    gaps = np.diff(np.sort(r))
+    gaps = gaps[gaps > 0]  # between distinct ranges (np.diff(np.unique(r)))
+    if len(gaps) < 2:  # fewer than 3 distinct ranges
         return 0.0
-    q = float(np.min(np.diff(u)))
+    q = float(gaps.min())
     k = r / q
-    if q <= 0 or np.mean(np.abs(k - np.round(k)) <= 1e-6) < 0.99:
+    if q <= 0 or np.count_nonzero(np.abs(k - np.rint(k)) <= 1e-6) / len(k) < 0.99:  # (mean)
         return 0.0
     return q
 
@@ -147,28 +155,31 @@ def fit_line_2d(points: np.ndarray) -> Line2D:
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
         raise ValueError(f"A line needs points with shape (N >= 2, 2), got {p.shape}")
     x, y = p.T
-    cx, cy = x.sum() / len(p), y.sum() / len(p)  # the centroid
+    cx, cy = np.add.reduce(x) / len(p), np.add.reduce(y) / len(p)  # the centroid (as x.sum())
     dx, dy = x - cx, y - cy  # centred, each contiguous
-    a = 0.5 * np.arctan2(2.0 * float(dx @ dy), float(dx @ dx) - float(dy @ dy))
-    n = np.array([-np.sin(a), np.cos(a)])
-    return Line2D(n, float(n[0] * cx + n[1] * cy))
+    a = 0.5 * float(np.arctan2(2.0 * float(dx @ dy), float(dx @ dx) - float(dy @ dy)))
+    nx, ny = -math.sin(a), math.cos(a)  # (math's sin and cos round as numpy's do)
+    return Line2D(np.array([nx, ny]), nx * float(cx) + ny * float(cy))
 
 
-def _median(v: np.ndarray) -> float:
-    """``np.median`` of a finite 1-D array, by partition (no NaN handling)."""
+def _median(v: np.ndarray, overwrite: bool = False) -> float:
+    """``np.median`` of a finite 1-D array, by partition (no NaN handling); ``overwrite``:
+    ``v`` may be reordered (a temporary), else it is copied."""
     n = len(v)
     k = n // 2
+    w = v if overwrite else v.copy()  # (the method: np.partition's dispatch costs as much)
     if n % 2:
-        return float(np.partition(v, k)[k])
-    lo, hi = np.partition(v, [k - 1, k])[k - 1:k + 1]
-    return float((lo + hi) / 2)
+        w.partition(k)
+        return float(w[k])
+    w.partition([k - 1, k])
+    return (float(w[k - 1]) + float(w[k])) / 2
 
 
 
 
 def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """TLS sum of squared orthogonal residuals of p[:k] + p[k:] for k in [lo, hi) (prefix sums)."""
-    q = p - p.mean(0)
+    q = p - np.add.reduce(p) / len(p)  # (p.mean(0))
     n = len(q)
 
     def sse(cnt, sx, sy, sxx, sxy, syy):
@@ -180,65 +191,107 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
         return np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
 
     x, y = q[:, 0], q[:, 1]
-    cs = np.zeros((n + 1, 5))
-    np.cumsum(np.column_stack([x, y, x * x, x * y, y * y]), axis=0, out=cs[1:])
+    cs = np.zeros((5, n + 1))  # cs[:, i]: the moments of p[:i], one contiguous row each
+    np.cumsum(np.array([x, y, x * x, x * y, y * y]), axis=1, out=cs[:, 1:])
     k = np.arange(lo, hi)
-    left = sse(k.astype(float), *cs[k].T)
-    right = sse((n - k).astype(float), *(cs[-1] - cs[k]).T)
-    return left + right
+    left = cs[:, lo:hi]  # moments of p[:k], then of p[k:]: both sides in one pass
+    both = sse(np.concatenate([k, n - k]).astype(float),
+               *np.concatenate([left, cs[:, -1:] - left], axis=1))
+    return both[:len(k)] + both[len(k):]
 
 
 def _mad_scale(r: np.ndarray) -> float:
     """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
-    return float(MAD_TO_SIGMA * _median(np.abs(r - _median(r))))
+    return float(MAD_TO_SIGMA * _median(np.abs(r - _median(r)), overwrite=True))
 
 
-def _two_line_scale(p: np.ndarray, k: int) -> float:
-    """Robust scale of the pooled residuals of TLS lines through ``p[:k]`` and ``p[k:]``."""
-    return _mad_scale(np.concatenate([fit_line_2d(p[:k]).distance(p[:k]),
-                                      fit_line_2d(p[k:]).distance(p[k:])]))
+class _PieceScales:
+    """Robust residual scales of TLS lines through pieces ``p[a:b]`` of one run of points,
+    each line fitted once: the top-down split (:func:`_split_into_lines`) and the merge
+    (:func:`_merge_collinear`) ask for the same pieces (a split's two halves are the next
+    level's pieces; a merge test of two halves is the split test that cut them). The robust
+    line of a final piece starts from the same TLS line when RANSAC keeps all its points
+    (:meth:`fitted`)."""
+
+    def __init__(self, p: np.ndarray) -> None:
+        self.p = p
+        self._fit: dict[tuple[int, int], tuple[Line2D, np.ndarray]] = {}
+        self._one: dict[tuple[int, int], float] = {}
+        self._two: dict[tuple[int, int, int], float] = {}
+
+    def residuals(self, a: int, b: int) -> np.ndarray:
+        """Signed orthogonal residuals of ``p[a:b]`` to their TLS line."""
+        if (a, b) not in self._fit:
+            q = self.p[a:b]
+            line = fit_line_2d(q)
+            self._fit[a, b] = line, line.distance(q)
+        return self._fit[a, b][1]
+
+    def fitted(self, a: int, b: int) -> tuple[Line2D, np.ndarray] | None:
+        """The TLS line of ``p[a:b]`` and its residuals when the split or the merge fitted it."""
+        return self._fit.get((a, b))
+
+    def one(self, a: int, b: int) -> float:
+        """MAD scale of the residuals of one line through ``p[a:b]``."""
+        if (a, b) not in self._one:
+            self._one[a, b] = _mad_scale(self.residuals(a, b))
+        return self._one[a, b]
+
+    def two(self, a: int, k: int, b: int) -> float:
+        """MAD scale of the pooled residuals of lines through ``p[a:k]`` and ``p[k:b]``."""
+        if (a, k, b) not in self._two:
+            self._two[a, k, b] = _mad_scale(np.concatenate([self.residuals(a, k),
+                                                            self.residuals(k, b)]))
+        return self._two[a, k, b]
 
 
-def _split_into_lines(p: np.ndarray, sigma: float, min_points: int) -> list[tuple[int, int]]:
-    """Top-down split of ordered points into line pieces, as [start, end) ranges.
+def _split_into_lines(p: np.ndarray, sigma: float, min_points: int,
+                      scales: _PieceScales | None = None, a: int = 0,
+                      b: int | None = None) -> list[tuple[int, int]]:
+    """Top-down split of ordered points ``p[a:b]`` (all of ``p`` by default) into line pieces,
+    as [start, end) ranges of ``p``.
 
     A piece is split at the breakpoint minimising the two-line TLS error while
     its single-line residuals have a robust scale (MAD) above ``2 sigma`` *and*
     the two lines at least halve that scale (``_SPLIT_GAIN``): the test adapts
     to the measured residuals, so a surface whose ranges step by a few mm
     along it (dark squares read farther, quantised or rippled real ranges)
-    stays one piece, while a kink (the hinge, a mount) is split.
+    stays one piece, while a kink (the hinge, a mount) is split. ``scales``
+    holds the pieces' line fits (shared with :func:`_merge_collinear`).
     """
-    n = len(p)
+    scales = _PieceScales(p) if scales is None else scales
+    b = len(p) if b is None else b
+    n = b - a
     if n < 2 * min_points:
-        return [(0, n)]
-    scale = _mad_scale(fit_line_2d(p).distance(p))
+        return [(a, b)]
+    scale = scales.one(a, b)
     if scale <= 2.0 * sigma:
-        return [(0, n)]
-    sse = _tls_sse_splits(p, min_points, n - min_points + 1)
-    k = min_points + int(np.argmin(sse))
-    if _two_line_scale(p, k) > _SPLIT_GAIN * scale:
-        return [(0, n)]
-    left = _split_into_lines(p[:k], sigma, min_points)
-    right = _split_into_lines(p[k:], sigma, min_points)
-    return left + [(a + k, b + k) for a, b in right]
+        return [(a, b)]
+    sse = _tls_sse_splits(p[a:b], min_points, n - min_points + 1)
+    k = a + min_points + int(np.argmin(sse))
+    if scales.two(a, k, b) > _SPLIT_GAIN * scale:
+        return [(a, b)]
+    return (_split_into_lines(p, sigma, min_points, scales, a, k)
+            + _split_into_lines(p, sigma, min_points, scales, k, b))
 
 
-def _merge_collinear(p: np.ndarray, pieces: list[tuple[int, int]]) -> list[tuple[int, int]]:
+def _merge_collinear(p: np.ndarray, pieces: list[tuple[int, int]],
+                     scales: _PieceScales | None = None) -> list[tuple[int, int]]:
     """Merge neighbouring pieces that are one line by the split test of :func:`_split_into_lines`.
 
     Two adjacent pieces are merged when one line through both has a robust
     residual scale below ``1 / _SPLIT_GAIN`` times that of their own two lines
     (the top-down split may cut a long staircase where neither half is straight).
+    ``scales`` holds the pieces' line fits (shared with the split).
     """
+    scales = _PieceScales(p) if scales is None else scales
     out = list(pieces)
     merged = True
     while merged and len(out) > 1:
         merged = False
         for i in range(len(out) - 1):
             (a, k), (_, b) = out[i], out[i + 1]
-            q = p[a:b]
-            if _mad_scale(fit_line_2d(q).distance(q)) * _SPLIT_GAIN < _two_line_scale(q, k - a):
+            if scales.one(a, b) * _SPLIT_GAIN < scales.two(a, k, b):
                 out[i:i + 2] = [(a, b)]
                 merged = True
                 break
@@ -250,45 +303,107 @@ def _robust_line(p: np.ndarray, sigma: float, rng: np.random.Generator,
     """RANSAC (threshold ``k sigma``) then iterated TLS refit, threshold ``k`` x MAD scale.
 
     Returns the line, the inlier mask and the robust residual scale (mm).
+    (:func:`line_segments` runs the two steps, :func:`_ransac_masks` and
+    :func:`_refine_line`, on all the pieces of a scan at once.)
     """
-    n = len(p)
-    best = np.ones(n, bool)
-    if n > 3:
-        # all hypotheses at once: pairs of distinct points, their line normals, inlier counts
-        i = rng.integers(n, size=trials)
-        j = (i + rng.integers(1, n, size=trials)) % n
-        d = p[j] - p[i]
-        ln = np.hypot(d[:, 0], d[:, 1])
-        good = ln > 0
-        if good.any():
-            if not good.all():
-                i, d, ln = i[good], d[good], ln[good]
-            nrm = np.column_stack([-d[:, 1], d[:, 0]]) / ln[:, None]
-            off = np.einsum("ij,ij->i", p[i], nrm)
-            inl = np.abs(p @ nrm.T - off) <= k * sigma  # (n, hypotheses)
-            best = inl[:, int(np.argmax(np.count_nonzero(inl, axis=0)))]
+    return _refine_line(p, sigma, _ransac_masks([p], sigma, rng, k, trials)[0], k)
+
+
+def _ransac_masks(pieces: list[np.ndarray], sigma: float, rng: np.random.Generator,
+                  k: float = 3.5, trials: int = 100) -> list[np.ndarray]:
+    """RANSAC on each piece of points (threshold ``k sigma``): the inliers of the line through
+    the pair of distinct points, of ``trials`` random pairs, that has the most inliers.
+
+    The pairs are drawn piece after piece (the same draws as one piece at a time); their
+    normals and offsets are computed for all pieces at once, the inlier counts per piece (a
+    hypothesis sees only its own piece's points). A piece of at most 3 points keeps them all.
+    """
+    drawn = [n > 3 for n in map(len, pieces)]
+    if not any(drawn):
+        return [np.ones(len(q), bool) for q in pieces]
+    first, second, start = [], [], 0  # pair indices into the pieces' concatenated points
+    for q, drew in zip(pieces, drawn):
+        n = len(q)
+        if drew:
+            i = rng.integers(n, size=trials)
+            first.append(start + i)
+            second.append(start + (i + rng.integers(1, n, size=trials)) % n)
+        start += n
+    P = np.concatenate(pieces)
+    pi = P[np.concatenate(first)]
+    d = P[np.concatenate(second)] - pi
+    ln = np.hypot(d[:, 0], d[:, 1])
+    hyp = np.empty((len(ln), 3))  # each hypothesis line as (normal, -offset)
+    with np.errstate(divide="ignore", invalid="ignore"):  # (a pair of equal points: not used)
+        np.divide(d[:, ::-1] * (-1.0, 1.0), ln[:, None], out=hyp[:, :2])  # (-dy, dx) / |d|
+    hyp[:, 2] = -np.einsum("ij,ij->i", pi, hyp[:, :2])
+    P1 = np.column_stack([P, np.ones(len(P))])  # points as (x, y, 1)
+    good = ln > 0
+    n_good = np.add.reduceat(good, np.arange(0, len(good), trials), dtype=np.intp)
+    count = np.uint16 if max(map(len, pieces)) < 2 ** 16 else np.intp  # (the smallest that fits)
+    out, h, start = [], 0, 0
+    for q, drew in zip(pieces, drawn):
+        n = len(q)
+        start += n
+        if not drew:
+            out.append(np.ones(n, bool))
+            continue
+        rows = slice(h, h + trials)
+        g = int(n_good[h // trials])
+        h += trials
+        if g == 0:
+            out.append(np.ones(n, bool))
+            continue
+        H = hyp[rows] if g == trials else hyp[rows][good[rows]]
+        # (hypotheses, n) signed distances n . p - offset in one product (the same sums as
+        # n . p then minus the offset), their absolute values in place
+        dist = H @ P1[start - n:start].T
+        inl = np.abs(dist, out=dist) <= k * sigma
+        # inliers per hypothesis: a row sum of bytes (count_nonzero along an axis is slower)
+        out.append(inl[int(inl.view(np.uint8).sum(axis=1, dtype=count).argmax())])
+    return out
+
+
+def _refine_line(p: np.ndarray, sigma: float, best: np.ndarray, k: float = 3.5,
+                 fitted: tuple[Line2D, np.ndarray] | None = None
+                 ) -> tuple[Line2D, np.ndarray, float]:
+    """Iterated TLS refit from the RANSAC inliers ``best``, threshold ``k`` x MAD scale, then
+    the levels of a staircase kept (:func:`_level_runs`): the line, its inliers, the scale.
+
+    ``fitted``: the TLS line of all of ``p`` and its residuals, if known (the split's); used
+    when RANSAC keeps every point (the first fit is then that line).
+    """
     mask = best
-    of_mask = np.count_nonzero(mask) >= 2  # ``line`` is the TLS line of ``p[mask]``
-    line = fit_line_2d(p[mask]) if of_mask else fit_line_2d(p)
+    n_in = np.count_nonzero(mask)
+    of_mask = n_in >= 2  # ``line`` is the TLS line of ``p[mask]``
+    resid = None  # ``line``'s residuals, when known
+    if n_in == len(p) and fitted is not None:
+        line, resid = fitted
+    else:  # (all points: the same fit without gathering them)
+        line = fit_line_2d(p if n_in == len(p) or not of_mask else p[mask])
     scale = sigma
     for _ in range(20):
-        r = np.abs(line.distance(p))
+        r = np.abs(line.distance(p) if resid is None else resid)
+        resid = None
         # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
         # re-estimating it from already-trimmed inliers
         scale = max(MAD_TO_SIGMA * _median(r), 0.25 * sigma)
         new = r <= k * scale
-        if np.count_nonzero(new) < 2:
+        n_new = np.count_nonzero(new)
+        if n_new < 2:
             break
-        same = np.array_equal(new, mask)
+        # the same inliers (np.array_equal): as many, and every point or the same points
+        same = n_new == n_in and (n_new == len(p) or bool((new == mask).all()))
         if not (same and of_mask):  # (a refit of the same points would give this line again)
-            line = fit_line_2d(p[new])
+            line = fit_line_2d(p if n_new == len(p) else p[new])
         if same:
             break
-        mask, of_mask = new, True
-    levels = _level_runs(p, line, mask, sigma)
-    if levels.any():
-        mask = mask | levels
-        line = fit_line_2d(p[mask])
+        mask, of_mask, n_in = new, True, n_new
+    if len(p) - n_in >= _LEVEL_RUN:  # (else no run of rejected points)
+        levels = _level_runs(p, line, mask, sigma)
+        if levels.any():
+            mask = mask | levels
+            line = fit_line_2d(p[mask])
     return line, mask, float(scale)
 
 
@@ -345,25 +460,55 @@ def _runs(rho: np.ndarray, valid_idx: np.ndarray, dtheta: float, sigma: float,
     The allowed jump between beams ``g`` apart is ``6 sqrt(2) sigma + 6 g rho dtheta``
     (noise plus a surface seen at up to ~80 deg incidence); depth edges are far larger.
     Skipping up to ``max_gap`` beams bridges dropouts and isolated spurious returns.
+    Returns the connected-component label of each valid return (:func:`_component_labels`).
     """
     m = len(valid_idx)
-    rows, cols = [], []
+    if m < 2:
+        return np.zeros(m, int)
     r = rho[valid_idx]
-    for lag in range(1, max_gap + 1):
-        if lag >= m:
-            break
-        g = valid_idx[lag:] - valid_idx[:-lag]
-        rr = np.minimum(r[lag:], r[:-lag])
-        tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * g * rr * dtheta
-        ok = (g <= max_gap) & (np.abs(r[lag:] - r[:-lag]) <= tau)
-        i = np.flatnonzero(ok)
-        rows.append(i)
-        cols.append(i + lag)
-    rows = np.concatenate(rows) if rows else np.zeros(0, int)
-    cols = np.concatenate(cols) if cols else np.zeros(0, int)
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, m))
-    _, labels = connected_components(graph, directed=False)
-    return labels
+    lags = np.arange(1, min(max_gap, m - 1) + 1)  # return i and return i + lag, lag < m
+    # every lag at once, (lags, m): past the last return, no range (NaN) and no beam
+    ahead = np.arange(m) + lags[:, None]
+    r_ahead = np.concatenate([r, np.full(len(lags), np.nan)])[ahead]
+    g = np.concatenate([valid_idx, np.full(len(lags), valid_idx[-1] + max_gap + 1)])[ahead] \
+        - valid_idx
+    rr = np.minimum(r_ahead, r)
+    tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * g * rr * dtheta
+    ok = (g <= max_gap) & (np.abs(r_ahead - r) <= tau)
+    return _component_labels(ok)
+
+
+def _component_labels(edge: np.ndarray) -> np.ndarray:
+    """Connected components of the graph on ``m`` ordered nodes with the edges ``i -> i + lag``
+    where ``edge[lag - 1, i]`` (shape (lags, m)), labelled ``0, 1, ...`` in the order of each
+    component's first node, as :func:`scipy.sparse.csgraph.connected_components` does.
+
+    The edges join nodes a few places apart, so the components are almost always blocks of
+    consecutive nodes, bar isolated nodes (no edge: a spurious return, bridged over): each
+    node joined to an earlier one belongs to a block that starts at a node joined only to
+    later ones. That is exact when no edge passes over such a starting node (it then cuts
+    the order in two; the isolated nodes touch no edge); otherwise the graph is labelled by
+    :func:`connected_components` (sparse graph, depth-first search).
+    """
+    n_lags, m = edge.shape
+    back = np.zeros(m, bool)  # node joined to an earlier node
+    over = np.zeros(m, bool)  # node strictly between the two ends of some edge
+    for lag in range(1, n_lags + 1):
+        e = edge[lag - 1, :m - lag]  # (edges from the last lag nodes would leave the graph)
+        back[lag:] |= e
+        for d in range(1, lag):
+            over[d:m - lag + d] |= e
+    fwd = edge.any(axis=0)  # node joined to a later node
+    starts = fwd & ~back
+    if not np.any(starts & over):
+        node = np.arange(m)
+        first = np.maximum.accumulate(np.where(starts, node, 0))  # the first node of its block
+        alone = ~(fwd | back)
+        first[alone] = node[alone]
+        return (np.cumsum(starts | alone) - 1)[first]  # components by their first node
+    lag, rows = np.nonzero(edge)
+    graph = coo_matrix((np.ones(len(rows)), (rows, rows + lag + 1)), shape=(m, m))
+    return connected_components(graph, directed=False)[1]
 
 
 def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
@@ -386,34 +531,42 @@ def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
     """
     ang = np.asarray(angle_deg, dtype=float)
     pts = scan_points(ang, range_mm)
-    rho = np.hypot(pts[:, 0], pts[:, 1])
+    return _line_segments(ang, pts, np.hypot(pts[:, 0], pts[:, 1]), range_noise_mm, min_points,
+                          max_gap)
+
+
+def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
+                   range_noise_mm: float | None, min_points: int,
+                   max_gap: int) -> tuple[list[LineSegment], float]:
+    """:func:`line_segments` of a scan's beam angles (deg), eq. (6) points and ranges (mm)."""
     if np.any(np.diff(ang) <= 0):
         raise ValueError("scan angles must be strictly ascending (beam order)")
     valid_idx = np.flatnonzero(np.isfinite(rho))
     if len(valid_idx) < min_points:
         return [], float(range_noise_mm or 0.0)
     sigma = float(range_noise_mm) if range_noise_mm is not None else effective_range_noise(rho)
-    sigma = max(sigma, 1e-6 * _median(rho[valid_idx]))
+    r_valid = rho[valid_idx]
+    if sigma < 1e-6 * r_valid.max():  # (else the floor, a millionth of the median range, is lower)
+        sigma = max(sigma, 1e-6 * _median(r_valid))
     dtheta = _median(np.diff(np.radians(ang)))
-    rng = np.random.default_rng(0)
+    rng = np.random.Generator(np.random.PCG64(_SEED))  # np.random.default_rng(0)
 
     labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)
-    segments: list[LineSegment] = []
-    for lab in np.unique(labels):
+    pieces = []  # (run label, beams of the piece, its points, its TLS line if fitted)
+    for lab in np.flatnonzero(np.bincount(labels) >= min_points):  # (labels 0, 1, ...)
         beams = valid_idx[labels == lab]
-        if len(beams) < min_points:
-            continue
         p = pts[beams]
-        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points)):
-            span = beams[a:b]
-            line, mask, scale = _robust_line(pts[span], sigma, rng)
-            if mask.sum() >= min_points:
-                segments.append(LineSegment(span[mask], span, line, scale, pts[span[mask]],
-                                             int(lab)))
+        scales = _PieceScales(p)
+        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales):
+            pieces.append((int(lab), beams[a:b], p[a:b], scales.fitted(a, b)))
+    segments: list[LineSegment] = []
+    ransac = _ransac_masks([q for _, _, q, _ in pieces], sigma, rng)
+    for (lab, span, q, fitted), best in zip(pieces, ransac):
+        line, mask, scale = _refine_line(q, sigma, best, fitted=fitted)
+        if np.count_nonzero(mask) >= min_points:
+            segments.append(LineSegment(span[mask], span, line, scale, q[mask], lab))
     segments.sort(key=lambda s: s.beams[0])
     return segments, sigma
-
-
 
 
 def local_line_noise(angle_deg: np.ndarray, range_mm: np.ndarray, window: int = 15) -> float:
