@@ -42,7 +42,7 @@ def _int_percentile(v: np.ndarray, q: float) -> float:
 def _noise_rows(shape: tuple[int, ...]) -> int:
     """Row step of :func:`_noise_sigma`: every other row, sparser on large crops so that
     at least some 60 000 differences remain (a MAD needs no more)."""
-    return 2 * int(np.clip((shape[0] * shape[1]) // 120_000, 1, 8))
+    return 2 * min(max((shape[0] * shape[1]) // 120_000, 1), 8)
 
 
 def _noise_sigma(img: np.ndarray, mask: np.ndarray, raw8: np.ndarray | None = None) -> float:
@@ -408,12 +408,14 @@ def _median(v: np.ndarray) -> float:
 
 
 def _row_median(a: np.ndarray) -> np.ndarray:
-    """``np.median(a, axis=1)`` for finite data, by one partition."""
+    """``np.median(a, axis=1)`` for finite data, by one partition (odd rows) or one sort
+    (even rows of several: a partition at two ranks costs several times a sort there; both
+    give the same order statistics, so the same medians)."""
     n = a.shape[1]
     k = n // 2
     if n % 2:
         return np.partition(a, k, axis=1)[:, k]
-    p = np.partition(a, [k - 1, k], axis=1)
+    p = np.partition(a, [k - 1, k], axis=1) if a.shape[0] == 1 else np.sort(a, axis=1)
     return 0.5 * (p[:, k - 1] + p[:, k])
 
 
@@ -662,7 +664,7 @@ def _fwhm(prof: np.ndarray, noise: float) -> float:
         return 3.0
     above = s[good] > 0.5 * pk[good, None]
     widths = np.count_nonzero(above, axis=1)
-    return float(np.clip(_median(widths), 1.0, 30.0))
+    return min(max(_median(widths), 1.0), 30.0)
 
 
 def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
@@ -676,7 +678,7 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         return keep, float("nan"), None
     if camera is not None:
         xy = undistort_pixels(camera, pts)
-        f = float(np.mean(np.diag(camera.K)[:2]))
+        f = 0.5 * (float(camera.K[0][0]) + float(camera.K[1][1]))  # mean focal length
         keep &= np.all(np.isfinite(xy), axis=1)
         u, v = np.ascontiguousarray(xy.T)  # the two coordinates, each contiguous
     else:
