@@ -42,7 +42,7 @@ def _int_percentile(v: np.ndarray, q: float) -> float:
 def _noise_rows(shape: tuple[int, ...]) -> int:
     """Row step of :func:`_noise_sigma`: every other row, sparser on large crops so that
     at least some 60 000 differences remain (a MAD needs no more)."""
-    return 2 * int(np.clip((shape[0] * shape[1]) // 120_000, 1, 8))
+    return 2 * min(max((shape[0] * shape[1]) // 120_000, 1), 8)
 
 
 def _noise_sigma(img: np.ndarray, mask: np.ndarray, raw8: np.ndarray | None = None) -> float:
@@ -59,8 +59,7 @@ def _noise_sigma(img: np.ndarray, mask: np.ndarray, raw8: np.ndarray | None = No
         a = raw8[::k]
         masked = _derived(mask, ("noise_n", k), lambda: np.count_nonzero(m) >= 10)
         v = cv2.addWeighted(a[:, 1:], 1.0, a[:, :-1], -1.0, 128.0)  # saturate(d + 128)
-        hist = cv2.calcHist([v], [0], m.view(np.uint8) if masked else None, [256],
-                            [0, 256]).ravel().astype(np.int64)
+        hist = _masked_hist(v, m) if masked else _hist(v)
         if hist.sum() == 0:
             return 0.5
         med2 = round(2 * _hist_percentile(hist, 50.0)) - 256  # 2 x median, an integer
@@ -85,6 +84,26 @@ def _noise_sigma(img: np.ndarray, mask: np.ndarray, raw8: np.ndarray | None = No
     return float(max(MAD_TO_SIGMA * mad / np.sqrt(2.0), 0.5))
 
 
+def _hist(img8: np.ndarray) -> np.ndarray:
+    """Histogram (256,) int64 of a uint8 image (``cv2.calcHist``; exact counts)."""
+    return cv2.calcHist([img8], [0], None, [256], [0, 256]).ravel().astype(np.int64)
+
+
+def _masked_hist(img8: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Histogram (256,) int64 of the uint8 image's pixels where ``mask`` (bool, its shape).
+
+    The counts of ``cv2.calcHist`` with the mask, from its plain histogram of the image
+    ANDed with the mask (a pixel outside counts at 0) with the pixels outside taken off
+    bin 0 again: OpenCV's masked loop costs several times its plain one.
+    """
+    m255, n_out = _derived(mask, "hist255", lambda: (
+        np.ascontiguousarray(mask).view(np.uint8) * np.uint8(255),
+        mask.size - np.count_nonzero(mask)))
+    hist = _hist(cv2.bitwise_and(img8, m255))
+    hist[0] -= n_out
+    return hist
+
+
 _DERIVED: list = []  # [(mask, key, value)]: arrays derived from the read-only board masks
 
 
@@ -104,7 +123,7 @@ def _derived(mask: np.ndarray, key, make):
     if isinstance(v, np.ndarray):
         v.flags.writeable = False
     _DERIVED.insert(0, (root, key, v))
-    del _DERIVED[16:]
+    del _DERIVED[32:]
     return v
 
 
@@ -160,8 +179,7 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
     full-resolution pixels (``sm`` is the image reduced by ``scale``)."""
     if sm.dtype == np.uint8 and sm.flags.c_contiguous:
         # the masked pixels' histogram, and every 7th of them (flat indices kept per mask)
-        m8 = np.ascontiguousarray(mask).view(np.uint8)
-        hist = cv2.calcHist([sm], [0], m8, [256], [0, 256]).ravel().astype(np.int64)
+        hist = _masked_hist(sm, mask)
         if hist.sum() < 20:
             return None
         every7 = _derived(mask, "every7", lambda: np.flatnonzero(mask)[::7])
@@ -194,7 +212,7 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
     keep = np.ones(len(P), bool)
     for _ in range(3):
         xk, yk = x[keep], y[keep]
-        c = np.array([xk.mean(), yk.mean()])
+        c = np.array([_mean(xk), _mean(yk)])
         t = _principal_direction_xy(xk - c[0], yk - c[1])
         r = (y - c[1]) * t[0] - (x - c[0]) * t[1]  # distance from the line
         s = MAD_TO_SIGMA * _median(np.abs(r[keep]))
@@ -233,7 +251,7 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
     profile, O(1) per profile and step (``half >= 1/2``).
     """
     n_rows, n = prof.shape
-    s = np.clip(prof, 0, None).astype(np.float64, copy=False)
+    s = np.maximum(prof, 0, dtype=np.float64)  # clipped at 0, in float64
     # running sums along each profile from integral images (row r + 1 minus row r)
     cs = cv2.integral(s, sdepth=cv2.CV_64F)
     cj = cv2.integral(s * np.arange(n), sdepth=cv2.CV_64F)
@@ -267,16 +285,21 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
 def _profiles(img: np.ndarray, xs: np.ndarray, y0: np.ndarray, L: int) -> tuple[np.ndarray,
                                                                                np.ndarray]:
     """Column profiles ``img[y0 + k, x]`` for ``k = -L..L`` (M, 2L+1), clipped to the image."""
+    top = _profile_top(y0, L, img.shape[0])
+    return _profiles_at(img, xs, top, 2 * L + 1), top
+
+
+def _profiles_at(img: np.ndarray, xs: np.ndarray, top: np.ndarray, n: int) -> np.ndarray:
+    """Column profiles ``img[top + k, x]`` for ``k = 0..n-1`` (M, n), float32; ``top`` as
+    :func:`_profile_top` gives it (in the image when it has ``n`` rows)."""
     H = img.shape[0]
-    n = 2 * L + 1
-    top = np.clip(np.round(y0).astype(np.intp) - L, 0, max(H - n, 0))
     if H >= n:  # windows of n rows: one gather of M runs, not M x n single pixels
         s0, s1 = img.strides
         win = np.lib.stride_tricks.as_strided(img, (H - n + 1, img.shape[1], n), (s0, s1, s0),
                                               writeable=False)
-        return win[top, xs].astype(np.float32, copy=False), top
+        return win[top, xs].astype(np.float32, copy=False)
     rows = np.clip(top[:, None] + np.arange(n)[None, :], 0, H - 1)
-    return img[rows, xs[:, None]].astype(np.float32, copy=False), top
+    return img[rows, xs[:, None]].astype(np.float32, copy=False)
 
 
 def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | None = None,
@@ -402,19 +425,33 @@ def _centres_in_crop(sub: np.ndarray, msub: np.ndarray, bsub: np.ndarray | None,
     return pts, info
 
 
+def _mean(v: np.ndarray) -> float:
+    """``v.mean()`` of a 1-D float64 array (the same sum and division), without the
+    wrapper's checks."""
+    return v.sum() / v.size
+
+
 def _median(v: np.ndarray) -> float:
     """``np.median`` of a finite 1-D array, by partition."""
     return float(_row_median(v[None, :])[0])
 
 
 def _row_median(a: np.ndarray) -> np.ndarray:
-    """``np.median(a, axis=1)`` for finite data, by one partition."""
+    """``np.median(a, axis=1)`` for finite data, by one partition (odd rows) or one sort
+    (even rows of several: a partition at two ranks costs several times a sort there; both
+    give the same order statistics, so the same medians)."""
     n = a.shape[1]
     k = n // 2
     if n % 2:
         return np.partition(a, k, axis=1)[:, k]
-    p = np.partition(a, [k - 1, k], axis=1)
+    p = np.partition(a, [k - 1, k], axis=1) if a.shape[0] == 1 else np.sort(a, axis=1)
     return 0.5 * (p[:, k - 1] + p[:, k])
+
+
+def _row_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=1)`` (the same maxima) as a reduction across the rows of the transposed
+    copy: numpy reduces short rows one at a time, but vectorises across rows."""
+    return np.ascontiguousarray(a.T).max(axis=0)
 
 
 def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
@@ -537,9 +574,8 @@ def _column_pass(img: np.ndarray, blk: np.ndarray | None, cols: np.ndarray, top:
     row ``top``: profiles, blackness profiles (or None), background-free profiles, start
     of the centroid, peak, centre (in window rows; the albedo ``1 - (1 - divide) b`` divided
     out when ``divide`` is given)."""
-    y_mid = top + L  # rounds to itself: the windows start at ``top``
-    prof, _ = _profiles(img, cols, y_mid, L)
-    bprof = None if blk is None else np.clip(_profiles(blk, cols, y_mid, L)[0], 0.0, 1.0)
+    prof = _profiles_at(img, cols, top, 2 * L + 1)
+    bprof = None if blk is None else np.clip(_profiles_at(blk, cols, top, 2 * L + 1), 0.0, 1.0)
     s = prof - _background(prof, bprof)
     start = np.argmax(_smooth_rows(s, sig_smooth), axis=1)
     peak = s[np.arange(len(s)), start]
@@ -557,7 +593,7 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.n
     that maximum is ``SATURATED_DN`` or more (a saturated laser core is a flat top).
     Other profiles keep their centroid ``cen``.
     """
-    top = prof.max(axis=1)
+    top = _row_max(prof)
     rows = np.flatnonzero((top >= SATURATED_DN) & np.isfinite(cen))
     rows = rows[np.count_nonzero(prof[rows] >= top[rows, None] - 1, axis=1) >= 3]  # flat tops
     out = cen.copy()
@@ -655,14 +691,15 @@ def _gauss_kernel(sigma: float) -> np.ndarray:
 
 def _fwhm(prof: np.ndarray, noise: float) -> float:
     """Median full width at half maximum (px) of the profiles with a clear peak."""
-    s = prof - _row_median(prof)[:, None]
-    pk = s.max(axis=1)
+    # (M, W) profiles handled as (W, M): the per-profile max and count of samples above
+    # half of it are reductions across profiles, which numpy vectorises (same numbers)
+    s = np.ascontiguousarray(prof.T) - _row_median(prof)
+    pk = s.max(axis=0)
     good = pk > 8 * noise
     if good.sum() < 3:
         return 3.0
-    above = s[good] > 0.5 * pk[good, None]
-    widths = np.count_nonzero(above, axis=1)
-    return float(np.clip(_median(widths), 1.0, 30.0))
+    widths = np.add.reduce(s > 0.5 * pk, axis=0, dtype=np.intp)[good]
+    return min(max(_median(widths), 1.0), 30.0)
 
 
 def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
@@ -676,7 +713,7 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
         return keep, float("nan"), None
     if camera is not None:
         xy = undistort_pixels(camera, pts)
-        f = float(np.mean(np.diag(camera.K)[:2]))
+        f = 0.5 * (float(camera.K[0][0]) + float(camera.K[1][1]))  # mean focal length
         keep &= np.all(np.isfinite(xy), axis=1)
         u, v = np.ascontiguousarray(xy.T)  # the two coordinates, each contiguous
     else:
@@ -687,7 +724,7 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
             break
         if camera is not None:
             uk, vk = u[keep], v[keep]
-            cu, cv = uk.mean(), vk.mean()
+            cu, cv = _mean(uk), _mean(vk)
             t = _principal_direction_xy(uk - cu, vk - cv)
             r = ((v - cv) * t[0] - (u - cu) * t[1]) * f  # distance from the line, x f
         else:

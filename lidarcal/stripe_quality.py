@@ -98,7 +98,9 @@ def _band_candidates(mask: np.ndarray, origin: tuple[int, int], c: np.ndarray,
     xs, ys = (a, b) if along == 0 else (b, a)
     sel = mask[ys, xs]
     xs, ys = xs[sel], ys[sel]
-    return np.column_stack([xs + x0, ys + y0]).astype(float) - c
+    P = np.empty((len(xs), 2))
+    P[:, 0], P[:, 1] = xs + x0, ys + y0
+    return P - c
 
 
 def quality_problem(q: dict, gates: StripeGates = DEFAULT_GATES) -> str | None:

@@ -164,3 +164,79 @@ def test_uint8_blur_kernel_sizes_give_opencvs_own_result(sigma) -> None:
     k = sp._UINT8_BLUR_KSIZE[sigma] - 2
     assert not np.array_equal(sp.cv2.GaussianBlur(noise, (k, k), sigma),
                               sp.cv2.GaussianBlur(noise, (0, 0), sigma))
+
+
+# --- issue 15 (stripe side): exact shortcuts against the plain numpy/OpenCV calls they replace,
+# on a real photo (data/real_tapas) and a simulated stripe image (data/paper_rig)
+
+_IMAGES = ("data/real_tapas/00.png", "data/paper_rig/stripes/0000.png")
+
+
+def _gray(path: str) -> np.ndarray:
+    import cv2
+    from pathlib import Path
+
+    img = cv2.imread(str(Path(__file__).resolve().parents[1] / path), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, path
+    return img
+
+
+def _polygon_mask(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    import cv2
+
+    H, W = shape
+    poly = np.column_stack([rng.uniform(0, W, 5), rng.uniform(0, H, 5)]).astype(np.int32)
+    m = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(m, cv2.convexHull(poly), 1)
+    return m.astype(bool)
+
+
+@pytest.mark.parametrize("path", _IMAGES)
+def test_masked_histogram_is_opencvs_masked_calchist(path) -> None:
+    import cv2
+
+    img = _gray(path)
+    rng = np.random.default_rng(3)
+    masks = [_polygon_mask(img.shape, rng) for _ in range(3)]
+    masks += [np.ones(img.shape, bool), rng.random(img.shape) < 0.5, np.zeros(img.shape, bool)]
+    for mask in masks:
+        ref = cv2.calcHist([img], [0], mask.view(np.uint8), [256], [0, 256]).ravel()
+        got = sp._masked_hist(img, mask)
+        assert got.dtype == np.int64 and np.array_equal(got, ref.astype(np.int64))
+        assert got.sum() == np.count_nonzero(mask)
+        ro = mask.copy()
+        ro.flags.writeable = False  # the cached path (read-only board masks)
+        assert np.array_equal(sp._masked_hist(img, ro), got)
+        assert np.array_equal(sp._masked_hist(img, ro), got)
+
+
+def _fwhm_reference(prof: np.ndarray, noise: float) -> float:
+    """The stripe width as it was written before: row-wise numpy on (M, W) profiles."""
+    s = prof - np.median(prof, axis=1)[:, None]
+    pk = s.max(axis=1)
+    good = pk > 8 * noise
+    if good.sum() < 3:
+        return 3.0
+    widths = np.count_nonzero(s[good] > 0.5 * pk[good, None], axis=1)
+    return float(np.clip(np.median(widths), 1.0, 30.0))
+
+
+@pytest.mark.parametrize("path", _IMAGES)
+def test_profile_reductions_match_the_row_wise_numpy(path) -> None:
+    """Column profiles of a real and a simulated stripe image: the stripe width, the
+    per-profile maximum and the row medians (odd and even widths, one row and many) are
+    the ones numpy's row-wise calls give, to the bit."""
+    img = _gray(path)
+    H, W = img.shape
+    rng = np.random.default_rng(5)
+    row, col = np.unravel_index(np.argmax(sp._gaussian_blur(img, 1.5)), img.shape)
+    cols = np.arange(W)
+    for y0 in (np.full(W, float(row)), rng.uniform(0, H - 1, W)):
+        for L in (8, 26, 30):
+            prof, _ = sp._profiles(img, cols, y0, L)
+            assert sp._fwhm(prof, 2.0) == _fwhm_reference(prof, 2.0)
+            assert np.array_equal(sp._row_max(prof), prof.max(axis=1))
+            for n in (17, 18, 61):
+                part = np.ascontiguousarray(prof[:, :min(n, prof.shape[1])])
+                assert np.array_equal(sp._row_median(part), np.median(part, axis=1))
+                assert sp._median(part[0]) == float(np.median(part[0]))
