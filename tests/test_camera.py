@@ -209,3 +209,28 @@ def test_simulated_views_recover_truth() -> None:
     xy_t = undistort_pixels(cam_t, g)
     px = project_points(r.camera, np.column_stack([xy_t, np.ones(len(g))]))
     assert np.max(np.linalg.norm(px - g, axis=1)) < 1.5
+
+
+def test_zhang_calibration_is_the_same_every_run() -> None:
+    """40 noisy simulated views of a 9 x 6 board through the wide lens: the same camera, bit
+    for bit, from five runs (OpenCV's threaded sums made it differ by ~1e-12 from run to
+    run), and the caller's OpenCV thread count is left as it was."""
+    from lidarcal.camera import _calibrate
+    rng = np.random.default_rng(7)
+    obj = np.zeros((54, 3))
+    obj[:, :2] = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 30.0
+    img_pts, obj_pts = [], []
+    while len(img_pts) < 40:
+        rvec = rng.normal(0, 0.35, 3)
+        tvec = np.array([rng.uniform(-200, 50), rng.uniform(-150, 50), rng.uniform(450, 900)])
+        px, _ = cv2.projectPoints(obj, rvec, tvec, WIDE_CAM.K, WIDE_CAM.dist)
+        px = px.reshape(-1, 2) + rng.normal(0, 0.1, (54, 2))
+        if np.all((px > 0) & (px < np.array(WIDE_CAM.image_size) - 1)):
+            img_pts.append(px)
+            obj_pts.append(obj)
+    threads = cv2.getNumThreads()
+    runs = [_calibrate(img_pts, obj_pts, WIDE_CAM.image_size, 0)[0] for _ in range(5)]
+    assert cv2.getNumThreads() == threads
+    for cam in runs[1:]:
+        assert np.array_equal(cam.K, runs[0].K) and np.array_equal(cam.dist, runs[0].dist)
+    assert abs(runs[0].K[0, 0] / WIDE_CAM.K[0, 0] - 1) < 2e-3  # and it is the lens simulated
