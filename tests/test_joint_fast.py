@@ -186,6 +186,60 @@ def test_stripe_pixel_jacobian_equals_opencv(seed):
     assert np.allclose(pixel_jacobian(cam, P), J0, rtol=1e-9, atol=1e-12 * np.abs(J0).max())
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_pixel_jacobian_forms_equal_those_of_opencvs_jacobian(seed):
+    """The Binet-Cauchy forms of d pixel / d point (row cross product, J^T J) computed from the
+    distortion's Jacobian (lidarcal.joint.problem.pixel_jacobian_forms) equal those of
+    cv2.projectPoints' Jacobian wrt the translation, for random five-coefficient cameras."""
+    import cv2
+
+    from lidarcal.io.dataset import CameraModel
+    from lidarcal.joint.problem import jacobian_forms, pixel_jacobian_forms
+
+    rng = np.random.default_rng(10 + seed)
+    K = np.array([[rng.uniform(800, 2000), 0.0, rng.uniform(600, 700)],
+                  [0.0, rng.uniform(800, 2000), rng.uniform(400, 500)], [0.0, 0.0, 1.0]])
+    dist = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-1e-3, 1e-3),
+                     rng.uniform(-1e-3, 1e-3), rng.uniform(-0.05, 0.05)])
+    z = rng.uniform(300, 1500, 200)
+    P = np.column_stack([rng.uniform(-0.5, 0.5, 200) * z, rng.uniform(-0.4, 0.4, 200) * z, z])
+    _, J = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+    F0 = jacobian_forms(J[:, 3:6].reshape(-1, 2, 3))
+    F1 = pixel_jacobian_forms(CameraModel(K, dist, (1280, 960)), P)
+    assert np.allclose(F1, F0, rtol=1e-9, atol=1e-12 * np.abs(F0).max(axis=0))
+
+
+def test_stripe_scale_equals_the_imaged_directions(noisy_problem):
+    """The stripe scale from the Binet-Cauchy forms (:meth:`_Problem.set_stripe_scale`) equals
+    the direct one: board direction u and stripe direction l imaged by each centre's pixel
+    Jacobian, |J u x J l| / |J l| per mm of laser offset, at the start and at a rig step."""
+    from lidarcal.geometry import unit
+    from lidarcal.joint.params import _poses, _rig
+    from lidarcal.joint.problem import _stripe_points, pixel_jacobian
+
+    prob = noisy_problem
+    d = prob.data
+    J = pixel_jacobian(d.camera, _stripe_points(d, d.board_R, d.board_T)["P"])
+    saved = prob.scale_px, prob.scale_depth
+    try:
+        for step in (0.0, 0.02):
+            x = np.zeros(N_RIG + 12 + 2)
+            x[[0, 5]] = step
+            prob.set_stripe_scale(x)
+            R, _ = _poses(*_rig(x[:N_RIG], prob.base), prob.t)
+            g = 2 * d.stripe_pos + d.stripe_board
+            n, zL = d.board_R[d.stripe_board, :, 2], R[d.stripe_pos, :, 2]
+            line = unit(np.cross(n, zL))
+            u = unit(np.cross(n, line))
+            pu, pl = np.einsum("mij,mj->mi", J, u), np.einsum("mij,mj->mi", J, line)
+            perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0]) / np.hypot(*pl.T)
+            want = perp / np.maximum(np.abs(np.einsum("ij,ij->i", zL, u)), 1e-9)
+            assert len(np.unique(g)) > 2
+            assert np.allclose(prob.scale_px, want, rtol=1e-10, atol=0), step
+    finally:
+        prob.scale_px, prob.scale_depth = saved
+
+
 def test_whitening_of_large_groups_equals_the_row_gather():
     """The noise model's whitening (GLS, per-group offset and tilt) group by group (large
     groups, rows grouped) equals the same on the rows in another order (gathered by group)

@@ -30,7 +30,7 @@ import weakref
 
 import numpy as np
 
-from .noise import BLOCK_ROWS, _Groups
+from .noise import _blocked, _blocks, _Groups, _rows_dot
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
 from .solver import (
@@ -245,26 +245,6 @@ class _MomentProblem:
                 np.matmul(hw[cuts[g]:cuts[g + 1]].T, h[cuts[g]:cuts[g + 1]], out=Q[g])
             out.append(Q)
         return out[0], out[1]
-
-
-def _blocked(grp: _Groups, h: np.ndarray) -> bool:
-    """Whether the rows of ``h`` go group by group (:data:`lidarcal.joint.noise.BLOCK_ROWS`)."""
-    return grp._sorted and len(h) >= BLOCK_ROWS * max(len(grp._nonempty), 1)
-
-
-def _blocks(grp: _Groups):
-    """(group, first row, end row) of every non-empty group (rows grouped)."""
-    return zip(grp._nonempty, grp._starts, grp._starts + grp._size[grp._nonempty])
-
-
-def _rows_dot(h: np.ndarray, c: np.ndarray, grp: _Groups) -> np.ndarray:
-    """``h_i . c_g`` of every row ``i`` with its group's coefficients (M,)."""
-    if not _blocked(grp, h):
-        return np.einsum("mk,mk->m", h, grp.spread(c))
-    r = np.zeros(len(h))
-    for g, i, j in _blocks(grp):
-        np.dot(h[i:j], c[g], out=r[i:j])
-    return r
 
 
 def moments_usable(prob: _Problem, use_corners: bool) -> bool:

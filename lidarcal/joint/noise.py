@@ -227,3 +227,26 @@ def _along(grp: _Groups, coords: np.ndarray) -> np.ndarray:
     _, V = np.linalg.eigh(np.stack([np.stack([sxx, sxy], 1), np.stack([sxy, syy], 1)], 1))
     v = V[:, :, 1] * (n >= 3)[:, None]  # eigenvalues ascending: the last is the principal direction
     return np.einsum("ij,ij->i", q, grp.spread(v))
+
+
+def _blocked(grp: _Groups, h: np.ndarray) -> bool:
+    """Whether the rows of ``h`` go group by group (:data:`BLOCK_ROWS`)."""
+    return grp._sorted and len(h) >= BLOCK_ROWS * max(len(grp._nonempty), 1)
+
+
+def _blocks(grp: _Groups):
+    """(group, first row, end row) of every non-empty group (rows grouped)."""
+    return zip(grp._nonempty, grp._starts, grp._starts + grp._size[grp._nonempty])
+
+
+def _rows_dot(h: np.ndarray, c: np.ndarray, grp: _Groups) -> np.ndarray:
+    """``h_i . c_g`` of every row ``i`` with its group's coefficients: ``c`` (G, k) gives (M,),
+    ``c`` (G, k, q) gives (M, q) (row ``i`` times its group's matrix)."""
+    if not _blocked(grp, h):
+        if c.ndim == 2:
+            return np.einsum("mk,mk->m", h, grp.spread(c))
+        return np.einsum("mk,mkq->mq", h, grp.spread(c))
+    r = np.zeros((len(h),) + c.shape[2:])
+    for g, i, j in _blocks(grp):
+        np.dot(h[i:j], c[g], out=r[i:j])
+    return r
