@@ -240,6 +240,37 @@ def test_stripe_scale_equals_the_imaged_directions(noisy_problem):
         prob.scale_px, prob.scale_depth = saved
 
 
+def test_grid_layout_equals_the_rows():
+    """The moment solver's grid layout (:meth:`_Groups.pad_columns`, groups of unequal size,
+    one empty): the whitening there (:func:`whiten_padded`) is the row whitening times the
+    mask, per-row dot products (:func:`padded_rows_dot`) and the moments ``sum W h h^T`` and
+    ``sum v h`` are those of the rows group by group."""
+    from lidarcal.joint.noise import _Groups, padded_rows_dot, whiten_padded
+
+    rng = np.random.default_rng(7)
+    n_pos = 3
+    size = np.array([5, 40, 0, 17, 60, 33])  # rows of group 2 i + b
+    gid = np.repeat(np.arange(2 * n_pos), size)
+    g = _Groups(gid // 2, gid % 2, rng.normal(size=(len(gid), 2)) * [50.0, 2.0], n_pos)
+    g.set_mask(rng.random(len(gid)) > 0.1)
+    g.set([0.7, 1.3], [0.2, 0.05], [1e-4, 3e-4], rng.uniform(0.1, 0.3, 2 * n_pos), None)
+    h = rng.normal(size=(len(gid), 4))
+    H = whiten_padded(g, h)
+    assert H.shape == (2 * n_pos, 4, size.max())
+    rows = g.whiten_columns(h) * g.w[:, None]
+    assert np.allclose(H.transpose(0, 2, 1).reshape(-1, 4)[g._grid], rows, rtol=0, atol=1e-13)
+    c, W = rng.normal(size=(2 * n_pos, 4)), rng.uniform(0.2, 1.0, len(gid))
+    assert np.allclose(padded_rows_dot(g, H, c), np.einsum("mk,mk->m", rows, c[gid]),
+                       rtol=0, atol=1e-13)
+    Q = np.matmul(H * g.pad(W)[:, None, :], H.transpose(0, 2, 1))
+    b = np.matmul(H, g.pad(W)[:, :, None])[:, :, 0]
+    for k in range(2 * n_pos):
+        m = gid == k
+        assert np.allclose(Q[k], (rows[m] * W[m, None]).T @ rows[m], rtol=0, atol=1e-12)
+        assert np.allclose(b[k], W[m] @ rows[m], rtol=0, atol=1e-12)
+    assert np.array_equal(g.unpad(g.pad(W)), W)
+
+
 def test_whitening_of_large_groups_equals_the_row_gather():
     """The noise model's whitening (GLS, per-group offset and tilt) group by group (large
     groups, rows grouped) equals the same on the rows in another order (gathered by group)

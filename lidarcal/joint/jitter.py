@@ -4,13 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .moments import (
-    _MomentProblem,
-    _rows_dot,
-    cached_observations,
-    moments_usable,
-    raw_observations,
-)
+from .moments import _MomentProblem, cached_observations, moments_usable, raw_observations
+from .noise import _rows_dot, padded_rows_dot
 from .params import N_RIG
 from .problem import _Problem
 from .solver import _irls_weights
@@ -38,7 +33,7 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
         rows = []
         if obs is not None:  # the solver's whitened observations
             for grp, h, c, dc in ((prob.scan, obs["hs"], cs, dcs), (prob.stripe, obs["hp"], cp, dcp)):
-                rows += [_rows_dot(h, c, grp), _rows_dot(h, dc, grp)]
+                rows += [padded_rows_dot(grp, h, c), padded_rows_dot(grp, h, dc)]
         else:
             for grp, h, c, dc in zip((prob.scan, prob.stripe), raw_observations(prob),
                                      (cs, cp), (dcs, dcp)):

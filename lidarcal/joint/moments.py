@@ -30,7 +30,7 @@ import weakref
 
 import numpy as np
 
-from .noise import _blocked, _blocks, _Groups, _rows_dot
+from .noise import _Groups, padded_rows_dot, whiten_padded
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
 from .solver import (
@@ -41,11 +41,6 @@ from .solver import (
     _lm_step,
     _rho_and_weights,
 )
-
-
-def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
-    """``V^-1/2`` of every column of ``h`` (rows grouped and sorted by ``grp.gid``)."""
-    return grp.whiten_columns(h)
 
 
 _OBS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -80,7 +75,9 @@ def cached_observations(prob: _Problem) -> dict | None:
 
 def _observations(prob: _Problem, build: bool = True) -> dict | None:
     """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
-    (module docstring), as ``{"hs": .., "hp": ..}``.
+    (module docstring), as ``{"hs": .., "hp": ..}``, each on its grouping's grid
+    (:meth:`lidarcal.joint.noise._Groups.pad_columns`: (G, k, n_max), zero where dropped or
+    padded).
     They do not depend on the rig parameters: computed once per noise state and reused by
     every solve, the covariance and the jitter test on it."""
     state = _noise_state(prob)
@@ -91,11 +88,7 @@ def _observations(prob: _Problem, build: bool = True) -> dict | None:
     if not build:
         return None
     hs, hp = raw_observations(prob)
-    hs = _whitened(prob.scan, hs)
-    hs *= prob.scan.w[:, None]
-    hp = _whitened(prob.stripe, hp)
-    hp *= prob.stripe.w[:, None]
-    obs = {"hs": hs, "hp": hp}
+    obs = {"hs": whiten_padded(prob.scan, hs), "hp": whiten_padded(prob.stripe, hp)}
     _OBS_CACHE[prob.data] = (state, obs)
     return obs
 
@@ -216,34 +209,25 @@ class _MomentProblem:
 
     def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
-        return (_rows_dot(self.hs, cs, self.prob.scan), _rows_dot(self.hp, cp, self.prob.stripe))
+        return (padded_rows_dot(self.prob.scan, self.hs, cs),
+                padded_rows_dot(self.prob.stripe, self.hp, cp))
 
     def first_moments(self, vs: np.ndarray, vp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``sum v h~`` of every group (G, 7) and (G, 4): with ``v = W r`` the gradient moments
-        ``Q c`` of the robust cost (one pass over the observations, no products)."""
-        out = []
-        for h, v, grp in ((self.hs, vs, self.prob.scan), (self.hp, vp, self.prob.stripe)):
-            if _blocked(grp, h):
-                b = np.zeros((self.n_groups, h.shape[1]))
-                for g, i, j in _blocks(grp):
-                    np.dot(v[i:j], h[i:j], out=b[g])
-                out.append(b)
-            else:
-                out.append(grp.group_sums(h * v[:, None]))
-        return out[0], out[1]
+        ``Q c`` of the robust cost (one batched product over the groups' grids)."""
+        return tuple(np.matmul(h, grp.pad(v)[:, :, None])[:, :, 0]
+                     for h, v, grp in ((self.hs, vs, self.prob.scan),
+                                       (self.hp, vp, self.prob.stripe)))
 
     def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
 
-        One small product ``(W h~)^T h~`` per group (rows grouped): no per-row products
+        One batched product ``(W h~)^T h~`` over the groups' grids: no per-row products
         stored, nothing to rebuild when the noise model changes."""
         out = []
-        for h, W, cuts in ((self.hs, Ws, self.cuts_s), (self.hp, Wp, self.cuts_p)):
-            Q = np.zeros((self.n_groups, h.shape[1], h.shape[1]))
-            hw = h * W[:, None]
-            for g in np.flatnonzero(np.diff(cuts) > 0):
-                np.matmul(hw[cuts[g]:cuts[g + 1]].T, h[cuts[g]:cuts[g + 1]], out=Q[g])
-            out.append(Q)
+        for h, W, grp in ((self.hs, Ws, self.prob.scan), (self.hp, Wp, self.prob.stripe)):
+            hw = h * grp.pad(W)[:, None, :]
+            out.append(np.matmul(hw, h.transpose(0, 2, 1)))
         return out[0], out[1]
 
 
@@ -473,7 +457,8 @@ def _stripe_plane_cross(prob: _Problem, mp: _MomentProblem, Qp: np.ndarray, Wp: 
     Dp = (prob.stripe_plane_rows(rn, db[b][:, None], R[p, :, 2], T[p]) if len(p)
           else np.zeros((0, 4)))
     Dp = prob.stripe.whiten_columns(Dp) * prob.stripe.w[:, None]
-    return _group_cross(mp.hp, Dp, Wp, mp.cuts_p)
+    hp = mp.hp.transpose(0, 2, 1).reshape(-1, mp.hp.shape[1])[prob.stripe._grid]  # rows
+    return _group_cross(hp, Dp, Wp, mp.cuts_p)
 
 
 def moments_covariance(prob: _Problem, loss: str, f_scale: float

@@ -39,6 +39,13 @@ class _Groups:
         self._nonempty = np.flatnonzero(self.n > 0)
         self._starts = starts[self._nonempty]
         self.sc = _along(self, np.asarray(coords, float))
+        # the grid layout (:meth:`pad`): row i of group g at g * n_max + its place in g
+        self.n_max = int(self._size.max()) if self._sorted and len(self._size) else 0
+        self._grid = None  # rows not grouped: no grid (the moment solver is not used)
+        if self._sorted:
+            first = np.repeat(np.cumsum(self._size) - self._size, self._size)
+            self._grid = self.gid * self.n_max + (np.arange(len(self.gid)) - first)
+        self._grid_columns: dict[int, np.ndarray] = {}  # pad_columns' flat indices, by k
         self.sigma = np.ones(2)
         self.var0 = np.zeros(2)
         self.var1 = np.zeros(2)
@@ -129,6 +136,31 @@ class _Groups:
         out -= self.spread(a0)
         out -= self.spread(a1) * self.sc[:, None]
         return out
+
+    def pad(self, v: np.ndarray) -> np.ndarray:
+        """A value per row (M,) laid out group by group on a grid (G, n_max), zeros where a
+        group has fewer rows (rows grouped, as built): per-group sums and products become
+        one batched ``np.matmul`` over the groups (:func:`whiten_padded`)."""
+        out = np.zeros(self.n_groups * self.n_max)
+        out[self._grid] = v
+        return out.reshape(self.n_groups, self.n_max)
+
+    def pad_columns(self, A: np.ndarray) -> np.ndarray:
+        """The columns of ``A`` (M, k) on the grid of :meth:`pad`, (G, k, n_max): a group's
+        column is contiguous (long inner loops for numpy)."""
+        k = A.shape[1]
+        idx = self._grid_columns.get(k)
+        if idx is None:  # flat index of (group g, column j, place i): (g k + j) n_max + i
+            place = self._grid - self.gid * self.n_max
+            idx = self._grid_columns[k] = ((self.gid * k)[:, None] + np.arange(k)) * self.n_max \
+                + place[:, None]
+        out = np.zeros(self.n_groups * k * self.n_max)
+        out[idx] = A
+        return out.reshape(self.n_groups, k, self.n_max)
+
+    def unpad(self, A: np.ndarray) -> np.ndarray:
+        """:meth:`pad` undone: the grid (G, n_max) back to rows (M,)."""
+        return A.reshape(-1)[self._grid]
 
     def group_sums(self, A: np.ndarray) -> np.ndarray:
         """Per-group column sums of ``A`` (M, k) -> (G, k): one ``np.add.reduceat`` when the
@@ -250,3 +282,26 @@ def _rows_dot(h: np.ndarray, c: np.ndarray, grp: _Groups) -> np.ndarray:
     for g, i, j in _blocks(grp):
         np.dot(h[i:j], c[g], out=r[i:j])
     return r
+
+
+def whiten_padded(grp: _Groups, h: np.ndarray) -> np.ndarray:
+    """:meth:`_Groups.whiten_columns` of ``h`` (M, k) times the mask ``w``, on the grid of
+    :meth:`_Groups.pad_columns` (G, k, n_max): ``(h - g0 m0 - g1 s m1) w / sigma`` with the
+    group means ``m0 = sum w h / n`` and slopes ``m1 = sum w s h / |s|^2`` as one batched
+    product over the groups (padding has ``w = 0``: it stays zero)."""
+    inv = 1 / grp.sig_g
+    out, w, s = grp.pad_columns(h), grp.pad(grp.w), grp.pad(grp.sc)
+    sums = np.matmul(out, np.stack([w, w * s], 2))  # (G, k, 2)
+    a0 = sums[:, :, 0] * (grp.g0 * inv / np.maximum(grp.n, 1e-300))[:, None]
+    a1 = sums[:, :, 1] * (grp.g1 * inv / grp.ss)[:, None]
+    out *= inv[:, None, None]
+    out -= a0[:, :, None]
+    out -= a1[:, :, None] * s[:, None, :]
+    out *= w[:, None, :]
+    return out
+
+
+def padded_rows_dot(grp: _Groups, h: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``h_i . c_g`` of every row with its group's coefficients ``c`` (G, k), ``h`` on the grid
+    of :meth:`_Groups.pad_columns` (G, k, n_max): rows (M,)."""
+    return grp.unpad(np.matmul(c[:, None, :], h))
