@@ -255,7 +255,7 @@ def test_grid_layout_equals_the_rows():
     g.set_mask(rng.random(len(gid)) > 0.1)
     g.set([0.7, 1.3], [0.2, 0.05], [1e-4, 3e-4], rng.uniform(0.1, 0.3, 2 * n_pos), None)
     h = rng.normal(size=(len(gid), 4))
-    H = whiten_padded(g, h)
+    H = whiten_padded(g, g.pad_columns(h))
     assert H.shape == (2 * n_pos, 4, size.max())
     rows = g.whiten_columns(h) * g.w[:, None]
     assert np.allclose(H.transpose(0, 2, 1).reshape(-1, 4)[g._grid], rows, rtol=0, atol=1e-13)

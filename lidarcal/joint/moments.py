@@ -68,6 +68,32 @@ def raw_observations(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
     return hs, hp
 
 
+_GRID_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def raw_observations_grid(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`raw_observations` on the groupings' grids (:meth:`lidarcal.joint.noise._Groups.pad_columns`),
+    (G, 7, n_max) and (G, 4, n_max): the parts that do not change during a fit (scan points,
+    beam directions, stripe points on the held planes) are laid out once per data and planes;
+    the dark shares and the stripe scales are laid out as they are."""
+    d, scan, stripe = prob.data, prob.scan, prob.stripe
+    key = prob.base.board_R.tobytes() + prob.base.board_T.tobytes()
+    const = _GRID_CACHE.get(d)
+    if const is None or const["planes"] != key:
+        P = _stripe_points(d, prob.base.board_R, prob.base.board_T)["P"]
+        const = _GRID_CACHE[d] = {
+            "planes": key, "P": stripe.pad_columns(P),
+            "xyu1": scan.pad_columns(np.column_stack([d.scan_xy, prob.scan_u,
+                                                      np.ones(len(d.scan_xy))])),
+            "one_p": stripe.pad(np.ones(len(P)))}
+    xyu1 = const["xyu1"]
+    u = xyu1[:, 2:4]
+    hs = np.concatenate([xyu1[:, :4], scan.pad(prob.dark)[:, None, :] * u, xyu1[:, 4:]], 1)
+    s = stripe.pad(prob.scale_px)[:, None, :]
+    hp = np.concatenate([s * const["P"], s], 1)
+    return hs, hp
+
+
 def cached_observations(prob: _Problem) -> dict | None:
     """:func:`_observations` when they are already at hand for ``prob``'s noise state, else None."""
     return _observations(prob, build=False)
@@ -87,7 +113,7 @@ def _observations(prob: _Problem, build: bool = True) -> dict | None:
         return hit[1]
     if not build:
         return None
-    hs, hp = raw_observations(prob)
+    hs, hp = raw_observations_grid(prob)
     obs = {"hs": whiten_padded(prob.scan, hs), "hp": whiten_padded(prob.stripe, hp)}
     _OBS_CACHE[prob.data] = (state, obs)
     return obs
@@ -132,35 +158,30 @@ class _MomentProblem:
 
     def _coefficients(self, x: np.ndarray, derivatives: bool
                       ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
-        """:meth:`coefficients`, computed."""
+        """:meth:`coefficients`, computed per position and laid out per group ``2 i + b``
+        (a position's two groups share its pose, each with its board's plane)."""
         prob = self.prob
         xr, rv = prob.split(x)
-        if not derivatives:
+        if derivatives:
+            R, T, G = prob.pose_derivatives(xr)
+        else:
             R, T = _poses(*_rig(xr, prob.base), prob.t)
-            pos = np.repeat(np.arange(len(prob.t)), 2)
-            n = self.nb[np.tile([0, 1], len(prob.t))]
-            a = np.einsum("gi,gi->g", n, R[pos, :, 0])
-            b = np.einsum("gi,gi->g", n, R[pos, :, 1])
-            gam = np.einsum("gi,gi->g", n, T[pos]) - self.db[np.tile([0, 1], len(prob.t))]
-            off, ex = rv[0], rv[1]
-            z = R[pos, :, 2]
-            return (np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam]), None,
-                    np.column_stack([z, -np.einsum("gi,gi->g", T[pos], z)]), None)
-        R, T, G = prob.pose_derivatives(xr)
-        n_pos = len(prob.t)
-        pos = np.repeat(np.arange(n_pos), 2)
-        brd = np.tile([0, 1], n_pos)
-        n = self.nb[brd]  # (G, 3)
-        Rg, Tg, Gg = R[pos], T[pos], G[pos]
-        a = np.einsum("gi,gi->g", n, Rg[:, :, 0])
-        b = np.einsum("gi,gi->g", n, Rg[:, :, 1])
-        gam = np.einsum("gi,gi->g", n, Tg) - self.db[brd]
-        da = np.einsum("gi,gij->gj", n, Gg[:, 0:3])
-        db = np.einsum("gi,gij->gj", n, Gg[:, 3:6])
-        dg = np.einsum("gi,gij->gj", n, Gg[:, 9:12])
+        n_grp = 2 * len(R)
+        nb = self.nb  # (2, 3): per position, both boards at once, (N, 2) -> groups 2 i + b
+        a = (R[:, :, 0] @ nb.T).ravel()
+        b = (R[:, :, 1] @ nb.T).ravel()
+        gam = (T @ nb.T - self.db).ravel()
         off, ex = rv[0], rv[1]
         cs = np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam])
-        Js = np.zeros((len(pos), 7, self.n_par))
+        z = R[:, :, 2]
+        tz = np.einsum("ij,ij->i", T, z)
+        cp = np.repeat(np.column_stack([z, -tz]), 2, axis=0)
+        if not derivatives:
+            return cs, None, cp, None
+        da = (nb @ G[:, 0:3]).reshape(n_grp, N_RIG)
+        db = (nb @ G[:, 3:6]).reshape(n_grp, N_RIG)
+        dg = (nb @ G[:, 9:12]).reshape(n_grp, N_RIG)
+        Js = np.zeros((n_grp, 7, self.n_par))
         Js[:, 0, :N_RIG], Js[:, 1, :N_RIG] = da, db
         Js[:, 2, :N_RIG], Js[:, 3, :N_RIG] = -off * da, -off * db
         Js[:, 4, :N_RIG], Js[:, 5, :N_RIG] = -ex * da, -ex * db
@@ -171,13 +192,11 @@ class _MomentProblem:
             Js[:, 4, N_RIG + 1], Js[:, 5, N_RIG + 1] = -a, -b
         for j in prob.frozen:  # held ranging terms: no column
             Js[:, :, N_RIG + j] = 0.0
-        z = Rg[:, :, 2]
-        dz = Gg[:, 6:9]
-        cp = np.column_stack([z, -np.einsum("gi,gi->g", Tg, z)])
-        Jp = np.zeros((len(pos), 4, self.n_par))
+        dz = G[:, 6:9]
+        Jp = np.zeros((len(R), 4, self.n_par))
         Jp[:, :3, :N_RIG] = dz
-        Jp[:, 3, :N_RIG] = -(np.einsum("gi,gij->gj", Tg, dz) + np.einsum("gi,gij->gj", z, Gg[:, 9:12]))
-        return cs, Js, cp, Jp
+        Jp[:, 3, :N_RIG] = -(np.einsum("ni,nij->nj", T, dz) + np.einsum("ni,nij->nj", z, G[:, 9:12]))
+        return cs, Js, cp, np.repeat(Jp, 2, axis=0)
 
     def angle_coefficients(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
         """Per group ``c`` and ``dc/dt`` wrt the group's own turntable angle: scans (G, 7) x 2,

@@ -285,12 +285,12 @@ def _rows_dot(h: np.ndarray, c: np.ndarray, grp: _Groups) -> np.ndarray:
 
 
 def whiten_padded(grp: _Groups, h: np.ndarray) -> np.ndarray:
-    """:meth:`_Groups.whiten_columns` of ``h`` (M, k) times the mask ``w``, on the grid of
-    :meth:`_Groups.pad_columns` (G, k, n_max): ``(h - g0 m0 - g1 s m1) w / sigma`` with the
-    group means ``m0 = sum w h / n`` and slopes ``m1 = sum w s h / |s|^2`` as one batched
-    product over the groups (padding has ``w = 0``: it stays zero)."""
+    """:meth:`_Groups.whiten_columns` times the mask ``w`` of observations on the grid of
+    :meth:`_Groups.pad_columns`, ``h`` (G, k, n_max), in place: ``(h - g0 m0 - g1 s m1) w /
+    sigma`` with the group means ``m0 = sum w h / n`` and slopes ``m1 = sum w s h / |s|^2``
+    as one batched product over the groups (padding has ``w = 0``: it stays zero)."""
     inv = 1 / grp.sig_g
-    out, w, s = grp.pad_columns(h), grp.pad(grp.w), grp.pad(grp.sc)
+    out, w, s = h, grp.pad(grp.w), grp.pad(grp.sc)
     sums = np.matmul(out, np.stack([w, w * s], 2))  # (G, k, 2)
     a0 = sums[:, :, 0] * (grp.g0 * inv / np.maximum(grp.n, 1e-300))[:, None]
     a1 = sums[:, :, 1] * (grp.g1 * inv / grp.ss)[:, None]
