@@ -298,3 +298,17 @@ def test_whitening_of_large_groups_equals_the_row_gather():
         out.append(np.empty_like(w))
         out[-1][idx] = w
     assert np.allclose(out[0], out[1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 11, 1000, 1001, 36561])
+def test_median_overwrite_equals_numpys(n):
+    """The joint fit's median (one partition, lidarcal.joint.params.median_overwrite) is
+    numpy's, bit for bit, for odd and even counts, ties and a NaN."""
+    from lidarcal.joint.params import median_overwrite
+
+    rng = np.random.default_rng(n)
+    for a in (np.abs(rng.standard_t(3, n)), np.round(rng.normal(size=n), 1)):
+        assert median_overwrite(a.copy()) == np.median(a)
+    a = rng.normal(size=n)
+    a[n // 3] = np.nan
+    assert np.isnan(median_overwrite(a.copy()))
