@@ -135,6 +135,7 @@ class _MomentProblem:
             self.hs, self.hp = self.obs["hs"], self.obs["hp"]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
         self._coef_memo: dict = {}
+        self._products: dict = {}  # moments' work arrays W h~, by shape
         self._memo_base = prob.base
         self.n_groups = prob.scan.n_groups
         self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
@@ -245,7 +246,10 @@ class _MomentProblem:
         stored, nothing to rebuild when the noise model changes."""
         out = []
         for h, W, grp in ((self.hs, Ws, self.prob.scan), (self.hp, Wp, self.prob.stripe)):
-            hw = h * grp.pad(W)[:, None, :]
+            buf = self._products.get(h.shape)
+            if buf is None:  # one work array per shape, reused by every pass (no page faults)
+                buf = self._products[h.shape] = np.empty_like(h)
+            hw = np.multiply(h, grp.pad(W)[:, None, :], out=buf)
             out.append(np.matmul(hw, h.transpose(0, 2, 1)))
         return out[0], out[1]
 
