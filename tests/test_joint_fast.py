@@ -164,14 +164,14 @@ def test_stripe_rays_from_section1_points_equal_undistortion():
 
 @pytest.mark.parametrize("seed", range(3))
 def test_stripe_pixel_jacobian_equals_opencv(seed):
-    """d pixel / d point of the stripe scale (lidarcal.joint.problem.pixel_jacobian) from the
+    """d pixel / d point of the stripe scale (lidarcal.pixel_jacobian.pixel_jacobian) from the
     camera's distortion Jacobian equals cv2.projectPoints' Jacobian wrt the translation, for
     random cameras with all five distortion coefficients, over the image (a skew in K:
     ignored by both, as cv2.projectPoints does)."""
     import cv2
 
     from lidarcal.io.dataset import CameraModel
-    from lidarcal.joint.problem import pixel_jacobian
+    from lidarcal.pixel_jacobian import pixel_jacobian
 
     rng = np.random.default_rng(seed)
     K = np.array([[rng.uniform(800, 2000), rng.uniform(-2, 2), rng.uniform(600, 700)],
@@ -189,12 +189,12 @@ def test_stripe_pixel_jacobian_equals_opencv(seed):
 @pytest.mark.parametrize("seed", range(3))
 def test_pixel_jacobian_forms_equal_those_of_opencvs_jacobian(seed):
     """The Binet-Cauchy forms of d pixel / d point (row cross product, J^T J) computed from the
-    distortion's Jacobian (lidarcal.joint.problem.pixel_jacobian_forms) equal those of
+    distortion's Jacobian (lidarcal.pixel_jacobian.pixel_jacobian_forms) equal those of
     cv2.projectPoints' Jacobian wrt the translation, for random five-coefficient cameras."""
     import cv2
 
     from lidarcal.io.dataset import CameraModel
-    from lidarcal.joint.problem import jacobian_forms, pixel_jacobian_forms
+    from lidarcal.pixel_jacobian import jacobian_forms, pixel_jacobian_forms
 
     rng = np.random.default_rng(10 + seed)
     K = np.array([[rng.uniform(800, 2000), 0.0, rng.uniform(600, 700)],
@@ -215,7 +215,8 @@ def test_stripe_scale_equals_the_imaged_directions(noisy_problem):
     Jacobian, |J u x J l| / |J l| per mm of laser offset, at the start and at a rig step."""
     from lidarcal.geometry import unit
     from lidarcal.joint.params import _poses, _rig
-    from lidarcal.joint.problem import _stripe_points, pixel_jacobian
+    from lidarcal.joint.problem import _stripe_points
+    from lidarcal.pixel_jacobian import pixel_jacobian
 
     prob = noisy_problem
     d = prob.data
@@ -312,3 +313,32 @@ def test_median_overwrite_equals_numpys(n):
     a = rng.normal(size=n)
     a[n // 3] = np.nan
     assert np.isnan(median_overwrite(a.copy()))
+
+
+def test_stripe_forms_from_the_positions_equal_the_fits_own():
+    """The pixel-Jacobian forms each position brings (lidarcal.pixel_jacobian.ray_forms, at the
+    rays, computed where the position is solved) scaled to the held planes equal the forms the
+    fit computes itself at the points on the planes, and give the same stripe scales."""
+    from dataclasses import replace
+
+    from lidarcal.joint import joint_data
+    from lidarcal.joint.problem import _stripe_points
+    from lidarcal.pixel_jacobian import pixel_jacobian_forms, ray_forms
+    from lidarcal.study import StudySetting, simulate_rig
+
+    res = simulate_rig(23, StudySetting(n_positions=4)).result
+    plain = joint_data(res, "pnp")
+    assert plain.stripe_forms is None  # the study's positions bring none: the fit's own
+    for p in res.positions:
+        p.stripe_forms = ray_forms(res.camera, p.camera_lines.points_3d)
+    data = joint_data(res, "pnp")
+    assert data.stripe_forms is not None and len(data.stripe_forms) == len(data.stripe_px) > 100
+    assert np.array_equal(data.stripe_rays, plain.stripe_rays)
+    P = _stripe_points(data, data.board_R, data.board_T)["P"]
+    want = pixel_jacobian_forms(data.camera, P)
+    got = _stripe_points(data, data.board_R, data.board_T, jacobian=True)["forms"]
+    assert np.allclose(got, want, rtol=1e-12, atol=1e-15 * np.abs(want).max(axis=0))
+    # a position without forms: the fit computes all of them
+    res.positions[1].stripe_forms = None
+    assert joint_data(res, "pnp").stripe_forms is None
+    assert replace(data, stripe_px=data.stripe_px).without_stripes().stripe_forms is None

@@ -30,7 +30,7 @@ import weakref
 
 import numpy as np
 
-from .noise import _Groups, padded_rows_dot, whiten_padded
+from .noise import padded_rows_dot, whiten_padded
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
 from .solver import (
@@ -41,7 +41,6 @@ from .solver import (
     _lm_step,
     _rho_and_weights,
 )
-
 
 _OBS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
