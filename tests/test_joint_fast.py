@@ -342,3 +342,19 @@ def test_stripe_forms_from_the_positions_equal_the_fits_own():
     res.positions[1].stripe_forms = None
     assert joint_data(res, "pnp").stripe_forms is None
     assert replace(data, stripe_px=data.stripe_px).without_stripes().stripe_forms is None
+
+
+def test_observation_grids_equal_the_rows(noisy_problem):
+    """The moment solver's raw observations laid out on the grids (constant parts once per
+    data and planes, lidarcal.joint.moments.raw_observations_grid) are the rows of
+    raw_observations, and rows with a non-finite entry are found as numpy's all() finds them."""
+    from lidarcal.joint.data import _finite_rows
+    from lidarcal.joint.moments import raw_observations, raw_observations_grid
+
+    prob = noisy_problem
+    for grp, rows, grid in zip((prob.scan, prob.stripe), raw_observations(prob),
+                               raw_observations_grid(prob)):
+        assert np.array_equal(grid, grp.pad_columns(rows))
+    a = np.random.default_rng(3).normal(size=(50, 3))
+    a[[3, 9, 20], [0, 2, 1]] = [np.nan, np.inf, -np.inf]
+    assert np.array_equal(_finite_rows(a), np.all(np.isfinite(a), axis=1))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .moments import _MomentProblem, cached_observations, moments_usable, raw_observations
-from .noise import _rows_dot, padded_rows_dot
+from .moments import _MomentProblem, moments_usable, whitened_observations
+from .noise import padded_rows_dot
 from .params import N_RIG
 from .problem import _Problem
 from .solver import _irls_weights
@@ -20,25 +20,19 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
     ``-g_i / H_i`` (rad) and its variance ``s^2 / H_i`` (``s^2 >= 1`` the weighted residual
     variance). Planes held (rows grouped): ``J`` of a row is ``h . dc/dt`` whitened like
     its residual (:meth:`lidarcal.joint.moments._MomentProblem.angle_coefficients`; the
-    solver's whitened observations when at hand, else
-    :func:`lidarcal.joint.moments.raw_observations` whitened); otherwise one central
-    difference of all angles at once.
+    solver's whitened observations when at hand, else built for ``prob``'s noise model,
+    :func:`lidarcal.joint.moments.whitened_observations`); otherwise one central difference of all
+    angles at once.
     """
     d = prob.data
     n = d.n_positions
     pos = np.concatenate([d.scan_pos, d.stripe_pos])
     if len(x) == N_RIG + prob.n_ranging and moments_usable(prob, False):
         cs, dcs, cp, dcp = _MomentProblem(prob, observations=False).angle_coefficients(x)
-        obs = cached_observations(prob)
+        obs = whitened_observations(prob, store=False)  # the solver's, when at hand for this noise
         rows = []
-        if obs is not None:  # the solver's whitened observations
-            for grp, h, c, dc in ((prob.scan, obs["hs"], cs, dcs), (prob.stripe, obs["hp"], cp, dcp)):
-                rows += [padded_rows_dot(grp, h, c), padded_rows_dot(grp, h, dc)]
-        else:
-            for grp, h, c, dc in zip((prob.scan, prob.stripe), raw_observations(prob),
-                                     (cs, cp), (dcs, dcp)):
-                for v in (c, dc):  # residual and its derivative, whitened like the residuals
-                    rows.append(grp.whiten(_rows_dot(h, v, grp)) * grp.w)
+        for grp, h, c, dc in ((prob.scan, obs["hs"], cs, dcs), (prob.stripe, obs["hp"], cp, dcp)):
+            rows += [padded_rows_dot(grp, h, c), padded_rows_dot(grp, h, dc)]
         r0, J = np.concatenate(rows[0::2]), np.concatenate(rows[1::2])
     else:
         t0 = prob.t

@@ -93,18 +93,14 @@ def raw_observations_grid(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
     return hs, hp
 
 
-def cached_observations(prob: _Problem) -> dict | None:
-    """:func:`_observations` when they are already at hand for ``prob``'s noise state, else None."""
-    return _observations(prob, build=False)
-
-
-def _observations(prob: _Problem, build: bool = True) -> dict | None:
+def whitened_observations(prob: _Problem, build: bool = True, store: bool = True) -> dict | None:
     """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
     (module docstring), as ``{"hs": .., "hp": ..}``, each on its grouping's grid
     (:meth:`lidarcal.joint.noise._Groups.pad_columns`: (G, k, n_max), zero where dropped or
     padded).
     They do not depend on the rig parameters: computed once per noise state and reused by
-    every solve, the covariance and the jitter test on it."""
+    every solve, the covariance and the jitter test on it (``store`` False: built, when not
+    at hand, without replacing the ones kept, e.g. for a trial noise model)."""
     state = _noise_state(prob)
     hit = _OBS_CACHE.get(prob.data)
     if hit is not None and all(a is b for a, b in zip(hit[0][:-1], state[:-1])) \
@@ -114,7 +110,8 @@ def _observations(prob: _Problem, build: bool = True) -> dict | None:
         return None
     hs, hp = raw_observations_grid(prob)
     obs = {"hs": whiten_padded(prob.scan, hs), "hp": whiten_padded(prob.stripe, hp)}
-    _OBS_CACHE[prob.data] = (state, obs)
+    if store:
+        _OBS_CACHE[prob.data] = (state, obs)
     return obs
 
 
@@ -130,7 +127,7 @@ class _MomentProblem:
         self.nb = bR[:, :, 2]
         self.db = np.einsum("ij,ij->i", self.nb, bT)
         if observations:
-            self.obs = _observations(prob)
+            self.obs = whitened_observations(prob)
             self.hs, self.hp = self.obs["hs"], self.obs["hp"]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
         self._coef_memo: dict = {}
