@@ -270,6 +270,10 @@ def test_grid_layout_equals_the_rows():
         assert np.allclose(Q[k], (rows[m] * W[m, None]).T @ rows[m], rtol=0, atol=1e-12)
         assert np.allclose(b[k], W[m] @ rows[m], rtol=0, atol=1e-12)
     assert np.array_equal(g.unpad(g.pad(W)), W)
+    g.set([0.7, 1.3], [0.0, 0.0], [0.0, 0.0])  # white noise: whitening is a scaling
+    rows = g.whiten_columns(h) * g.w[:, None]
+    H = whiten_padded(g, g.pad_columns(h)).transpose(0, 2, 1).reshape(-1, 4)[g._grid]
+    assert np.array_equal(H, rows)
 
 
 def test_whitening_of_large_groups_equals_the_row_gather():

@@ -85,11 +85,13 @@ def raw_observations_grid(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
             "xyu1": scan.pad_columns(np.column_stack([d.scan_xy, prob.scan_u,
                                                       np.ones(len(d.scan_xy))])),
             "one_p": stripe.pad(np.ones(len(P)))}
-    xyu1 = const["xyu1"]
-    u = xyu1[:, 2:4]
-    hs = np.concatenate([xyu1[:, :4], scan.pad(prob.dark)[:, None, :] * u, xyu1[:, 4:]], 1)
-    s = stripe.pad(prob.scale_px)[:, None, :]
-    hp = np.concatenate([s * const["P"], s], 1)
+    xyu1, P = const["xyu1"], const["P"]
+    hs = np.empty((xyu1.shape[0], 7, xyu1.shape[2]))
+    hs[:, :4], hs[:, 6] = xyu1[:, :4], xyu1[:, 4]
+    np.multiply(scan.pad(prob.dark)[:, None, :], xyu1[:, 2:4], out=hs[:, 4:6])
+    hp = np.empty((P.shape[0], 4, P.shape[2]))
+    hp[:, 3] = stripe.pad(prob.scale_px)
+    np.multiply(hp[:, 3:], P, out=hp[:, :3])
     return hs, hp
 
 

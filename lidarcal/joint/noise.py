@@ -290,7 +290,12 @@ def whiten_padded(grp: _Groups, h: np.ndarray) -> np.ndarray:
     sigma`` with the group means ``m0 = sum w h / n`` and slopes ``m1 = sum w s h / |s|^2``
     as one batched product over the groups (padding has ``w = 0``: it stays zero)."""
     inv = 1 / grp.sig_g
-    out, w, s = h, grp.pad(grp.w), grp.pad(grp.sc)
+    out, w = h, grp.pad(grp.w)
+    if not (np.any(grp.g0) or np.any(grp.g1)):  # white noise (no group terms): a scaling
+        out *= inv[:, None, None]
+        out *= w[:, None, :]
+        return out
+    s = grp.pad(grp.sc)
     sums = np.matmul(out, np.stack([w, w * s], 2))  # (G, k, 2)
     a0 = sums[:, :, 0] * (grp.g0 * inv / np.maximum(grp.n, 1e-300))[:, None]
     a1 = sums[:, :, 1] * (grp.g1 * inv / grp.ss)[:, None]
