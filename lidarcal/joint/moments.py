@@ -30,7 +30,7 @@ import weakref
 
 import numpy as np
 
-from .noise import padded_rows_dot, whiten_padded
+from .noise import _Groups, padded_rows_dot, whiten_padded
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
 from .solver import (
@@ -225,20 +225,34 @@ class _MomentProblem:
         dcp = np.column_stack([dz, -np.einsum("gi,gi->g", dTg, z) - np.einsum("gi,gi->g", Tg, dz)])
         return scan(Rg, Tg, self.db[brd]), scan(dRg, dTg, 0.0), cp, dcp
 
-    def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
-        return (padded_rows_dot(self.prob.scan, self.hs, cs),
-                padded_rows_dot(self.prob.stripe, self.hp, cp))
+    def residuals(self, cs: np.ndarray, cp: np.ndarray, grid: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``:
+        per row (M,), (S,), or with ``grid`` on the groupings' grids, flattened (G n_max,) (zero
+        on padding and on dropped rows, as on those rows)."""
+        out = []
+        for h, c, grp in ((self.hs, cs, self.prob.scan), (self.hp, cp, self.prob.stripe)):
+            out.append(padded_rows_dot(grp, h, c) if not grid
+                       else np.matmul(c[:, None, :], h).reshape(-1))
+        return out[0], out[1]
 
-    def first_moments(self, vs: np.ndarray, vp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _on_grid(self, grp: _Groups, v: np.ndarray, grid: bool) -> np.ndarray:
+        """A value per row (or already on the grid, flattened, with ``grid``) as (G, n_max)."""
+        return v.reshape(grp.n_groups, grp.n_max) if grid else grp.pad(v)
+
+    def first_moments(self, vs: np.ndarray, vp: np.ndarray, grid: bool = False
+                      ) -> tuple[np.ndarray, np.ndarray]:
         """``sum v h~`` of every group (G, 7) and (G, 4): with ``v = W r`` the gradient moments
-        ``Q c`` of the robust cost (one batched product over the groups' grids)."""
-        return tuple(np.matmul(h, grp.pad(v)[:, :, None])[:, :, 0]
+        ``Q c`` of the robust cost (one batched product over the groups' grids). ``grid``: ``v``
+        on the grids (:meth:`residuals`)."""
+        return tuple(np.matmul(h, self._on_grid(grp, v, grid)[:, :, None])[:, :, 0]
                      for h, v, grp in ((self.hs, vs, self.prob.scan),
                                        (self.hp, vp, self.prob.stripe)))
 
-    def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
+    def moments(self, Ws: np.ndarray, Wp: np.ndarray, grid: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4). ``grid``: the weights
+        on the grids (:meth:`residuals`).
 
         One batched product ``(W h~)^T h~`` over the groups' grids: no per-row products
         stored, nothing to rebuild when the noise model changes."""
@@ -247,7 +261,7 @@ class _MomentProblem:
             buf = self._products.get(h.shape)
             if buf is None:  # one work array per shape, reused by every pass (no page faults)
                 buf = self._products[h.shape] = np.empty_like(h)
-            hw = np.multiply(h, grp.pad(W)[:, None, :], out=buf)
+            hw = np.multiply(h, self._on_grid(grp, W, grid)[:, None, :], out=buf)
             out.append(np.matmul(hw, h.transpose(0, 2, 1)))
         return out[0], out[1]
 
@@ -295,7 +309,8 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         """Robust cost at ``x``, its residuals' IRLS weights ``rho'`` and second-order weights
         ``rho' + 2 z^2 rho''`` (scan, stripe, prior), and the residuals."""
         cs, _, cp, _ = mp.coefficients(x, derivatives=False)
-        res = (*mp.residuals(cs, cp), prob.prior_residuals(x))
+        # on the grids: padding and dropped rows have r = 0, rho = 0 and h~ = 0
+        res = (*mp.residuals(cs, cp, grid=True), prob.prior_residuals(x))
         total, weights, curv = 0.0, [], []
         for r in res:
             z = r / f_scale
@@ -312,7 +327,7 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         # einsum, not BLAS: a threaded dot of ~1e5 entries stalls on a busy machine
         q = float(np.einsum("i,i->", Wr_s, rs) + np.einsum("i,i->", Wr_p, rp)
                   + np.sum(wr * rr * rr))
-        return mp.first_moments(Wr_s, Wr_p), q
+        return mp.first_moments(Wr_s, Wr_p, grid=True), q
 
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
@@ -400,11 +415,11 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
     for _ in range(max_outer):
         # Newton on the robust cost first (second-order weights); the IRLS step (a
         # majoriser: never increases the cost) when that does not decrease it
-        xi, H = inner(x, b, q, mp.moments(Ws2, Wp2), Wr, Wr2)
+        xi, H = inner(x, b, q, mp.moments(Ws2, Wp2, grid=True), Wr, Wr2)
         cn, W2, C2, res = robust_cost(xi)
         nfev += 1
         if not (np.isfinite(cn) and cn <= cost):
-            xi, H = inner(x, b, q, mp.moments(Ws, Wp), Wr, Wr)
+            xi, H = inner(x, b, q, mp.moments(Ws, Wp, grid=True), Wr, Wr)
             cn, W2, C2, res = robust_cost(xi)
             nfev += 1
         if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
