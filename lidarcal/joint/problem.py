@@ -113,9 +113,14 @@ class _Problem:
         Gaussian-noise optimum (for Gaussian data nothing is cut: P(|z| > 5) ~ 6e-7)."""
         rs, rp, _ = self.blocks(x, corners=False)
         for grp, r in ((self.scan, rs), (self.stripe, rp)):
-            grp.set_mask(np.ones(len(r), bool))
+            keep = np.ones(len(r), bool)
+            grp.set_mask(keep)
             for _ in range(2):  # the kept set changes the group moments: settle it
-                grp.set_mask(np.abs(grp.whiten(r)) <= REJECT_SIGMAS)
+                new = np.abs(grp.whiten(r)) <= REJECT_SIGMAS
+                if np.array_equal(new, keep):  # settled: another pass would repeat this one
+                    break
+                keep = new
+                grp.set_mask(keep)
 
     def blocks(self, x: np.ndarray, corners: bool = True
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
