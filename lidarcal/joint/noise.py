@@ -45,7 +45,6 @@ class _Groups:
         if self._sorted:
             first = np.repeat(np.cumsum(self._size) - self._size, self._size)
             self._grid = self.gid * self.n_max + (np.arange(len(self.gid)) - first)
-        self._grid_columns: dict[int, np.ndarray] = {}  # pad_columns' flat indices, by k
         self.sigma = np.ones(2)
         self.var0 = np.zeros(2)
         self.var1 = np.zeros(2)
@@ -147,16 +146,11 @@ class _Groups:
 
     def pad_columns(self, A: np.ndarray) -> np.ndarray:
         """The columns of ``A`` (M, k) on the grid of :meth:`pad`, (G, k, n_max): a group's
-        column is contiguous (long inner loops for numpy)."""
+        column is contiguous (long inner loops for numpy). Rows placed, then transposed."""
         k = A.shape[1]
-        idx = self._grid_columns.get(k)
-        if idx is None:  # flat index of (group g, column j, place i): (g k + j) n_max + i
-            place = self._grid - self.gid * self.n_max
-            idx = self._grid_columns[k] = ((self.gid * k)[:, None] + np.arange(k)) * self.n_max \
-                + place[:, None]
-        out = np.zeros(self.n_groups * k * self.n_max)
-        out[idx] = A
-        return out.reshape(self.n_groups, k, self.n_max)
+        rows = np.zeros((self.n_groups * self.n_max, k))
+        rows[self._grid] = A
+        return np.ascontiguousarray(rows.reshape(self.n_groups, self.n_max, k).transpose(0, 2, 1))
 
     def unpad(self, A: np.ndarray) -> np.ndarray:
         """:meth:`pad` undone: the grid (G, n_max) back to rows (M,)."""
