@@ -340,8 +340,19 @@ def test_stripe_forms_from_the_positions_equal_the_fits_own():
     assert np.array_equal(data.stripe_rays, plain.stripe_rays)
     P = _stripe_points(data, data.board_R, data.board_T)["P"]
     want = pixel_jacobian_forms(data.camera, P)
-    got = _stripe_points(data, data.board_R, data.board_T, jacobian=True)["forms"]
+    ent = _stripe_points(data, data.board_R, data.board_T, jacobian=True)
+    got = ent["forms"] / (ent["lam"] ** 2)[:, None]
     assert np.allclose(got, want, rtol=1e-12, atol=1e-15 * np.abs(want).max(axis=0))
+    # the stripe scales from both
+    from lidarcal.joint.fit import _start_bases
+    from lidarcal.joint.problem import _Problem
+
+    scales = []
+    for d in (data, plain):
+        prob = _Problem(d, _start_bases([res.rigid_model], d, 0.0)[0], 0.0)
+        prob.set_stripe_scale(np.zeros(N_RIG))
+        scales.append(prob.scale_px)
+    assert np.allclose(scales[0], scales[1], rtol=1e-12, atol=0)
     # a position without forms: the fit computes all of them
     res.positions[1].stripe_forms = None
     assert joint_data(res, "pnp").stripe_forms is None
