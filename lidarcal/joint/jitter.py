@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from .moments import _MomentProblem, moments_usable, whitened_observations
-from .noise import padded_rows_dot
 from .params import N_RIG
 from .problem import _Problem
 from .solver import _irls_weights
@@ -28,12 +27,18 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
     n = d.n_positions
     pos = np.concatenate([d.scan_pos, d.stripe_pos])
     if len(x) == N_RIG + prob.n_ranging and moments_usable(prob, False):
+        # on the groupings' grids (zero on padding and dropped rows), sums per group of each
+        # position's two (2 i + b)
         cs, dcs, cp, dcp = _MomentProblem(prob, observations=False).angle_coefficients(x)
         obs = whitened_observations(prob, store=False)  # the solver's, when at hand for this noise
-        rows = []
-        for grp, h, c, dc in ((prob.scan, obs["hs"], cs, dcs), (prob.stripe, obs["hp"], cp, dcp)):
-            rows += [padded_rows_dot(grp, h, c), padded_rows_dot(grp, h, dc)]
-        r0, J = np.concatenate(rows[0::2]), np.concatenate(rows[1::2])
+        H, g, ss = np.zeros(n), np.zeros(n), 0.0
+        for h, c, dc in ((obs["hs"], cs, dcs), (obs["hp"], cp, dcp)):
+            r0, J = np.matmul(c[:, None, :], h)[:, 0], np.matmul(dc[:, None, :], h)[:, 0]
+            w = _irls_weights(r0 / f_scale, loss)
+            wJ = w * J
+            H += (wJ * J).sum(1).reshape(n, 2).sum(1)
+            g += (wJ * r0).sum(1).reshape(n, 2).sum(1)
+            ss += float(np.sum(w * r0 * r0))
     else:
         t0 = prob.t
         h = 1e-5
@@ -46,10 +51,11 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
         m = len(pos)  # the ranging prior's pseudo-residuals follow: they do not move with t
         r0, rp, rm = r0[:m], rp[:m], rm[:m]
         J = (rp - rm) / (2 * h)
-    w = _irls_weights(r0 / f_scale, loss)
-    H = np.bincount(pos, w * J * J, minlength=n)
-    g = np.bincount(pos, w * J * r0, minlength=n)
-    s2 = max(float(np.sum(w * r0 * r0)) / max(len(r0) - N_RIG - n, 1), 1.0)
+        w = _irls_weights(r0 / f_scale, loss)
+        H = np.bincount(pos, w * J * J, minlength=n)
+        g = np.bincount(pos, w * J * r0, minlength=n)
+        ss = float(np.sum(w * r0 * r0))
+    s2 = max(ss / max(len(pos) - N_RIG - n, 1), 1.0)
     ok = H > 1e-300
     step = np.where(ok, -g / np.where(ok, H, 1.0), 0.0)
     return step, np.where(ok, s2 / np.where(ok, H, 1.0), np.inf)
