@@ -373,3 +373,38 @@ def test_observation_grids_equal_the_rows(noisy_problem):
     a = np.random.default_rng(3).normal(size=(50, 3))
     a[[3, 9, 20], [0, 2, 1]] = [np.nan, np.inf, -np.inf]
     assert np.array_equal(_finite_rows(a), np.all(np.isfinite(a), axis=1))
+
+
+def test_dark_classification_equals_the_beams_cut_with_the_boards():
+    """The joint fit's dark shares (per group, hits in board coordinates from the LiDAR plane,
+    _Problem.classify) equal lidarcal.ranging.dark_returns on every beam in the camera frame,
+    at the start and at a rig step, with returns on both colours."""
+    import copy
+
+    from lidarcal.joint import joint_data
+    from lidarcal.joint.fit import _start_bases
+    from lidarcal.joint.params import _boards
+    from lidarcal.joint.problem import _Problem
+    from lidarcal.ranging import dark_returns
+    from lidarcal.study import StudySetting, simulate_rig
+
+    res = simulate_rig(21, StudySetting(n_positions=6)).result
+    data = joint_data(res, "pnp")
+    assert data.can_see_dark and data.scan_dark is None
+    prob = _Problem(data, _start_bases([res.rigid_model], data, 0.0)[0], 0.0)
+    for step in (0.0, 0.01):
+        x = np.zeros(N_RIG + 12)
+        x[[1, 4, 8]] = [step, step, 50 * step]
+        q = copy.copy(prob)
+        q.classify(x)
+        R, T = _poses(*_rig(x[:N_RIG], prob.base), prob.t)
+        bR, bT = _boards(x, prob.base)
+        p, u = data.scan_pos, prob.scan_u
+        dirs = R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:]
+        want = np.zeros(len(p))
+        for b in range(2):
+            m = data.scan_board == b
+            want[m] = dark_returns(T[p][m], dirs[m], bR[b], bT[b], data.board_spec,
+                                   data.black_parity[b])
+        assert 0.1 < np.mean(want > 0.5) < 0.9
+        assert np.allclose(q.dark, want, rtol=0, atol=1e-9), step

@@ -74,20 +74,32 @@ class _Problem:
         d = self.data
         if d.scan_dark is not None or not d.can_see_dark:
             return
-        from ..ranging import dark_returns
+        from ..ranging import dark_share
 
         xr, _ = self.split(x)
         R, T = _poses(*_rig(xr, self.base), self.t)
         bR, bT = _boards(xr, self.base)
-        u, sp = self.scan_u, self.scan.spread  # per (position, board) -> per return
-        pos = np.repeat(np.arange(len(R)), 2)
-        dirs = sp(R[pos, :, 0]) * u[:, :1] + sp(R[pos, :, 1]) * u[:, 1:]
-        origin = sp(T[pos])
-        dark = np.zeros(len(u))
+        # per group (position i, board b): a return along u = (u_x, u_y) in the LiDAR plane
+        # leaves T_i along D u (D = [R_x R_y]) and cuts the board's plane (eq. 3) at
+        # t = e / (a . u), a = D^T n_b, e = n_b . (T_b - T_i); in board coordinates (the board
+        # frame's x, y) the hit is c + t (A u), A = R_b[:, :2]^T D, c = R_b[:, :2]^T (T_i - T_b)
+        brd = np.tile([0, 1], len(R))
+        Rg, Tg = np.repeat(R, 2, axis=0), np.repeat(T, 2, axis=0)
+        D, Bxy, n = Rg[:, :, :2], bR[brd][:, :, :2], bR[brd][:, :, 2]
+        a = np.einsum("gk,gkj->gj", n, D)  # (G, 2)
+        e = np.einsum("gk,gk->g", n, bT[brd] - Tg)
+        A = np.einsum("gki,gkj->gij", Bxy, D)  # (G, 2, 2)
+        c = np.einsum("gki,gk->gi", Bxy, Tg - bT[brd])  # (G, 2)
+        sp, ux, uy = self.scan.spread, self.scan_u[:, 0], self.scan_u[:, 1]
+        den = sp(a[:, 0]) * ux + sp(a[:, 1]) * uy
+        ok = np.abs(den) > 1e-12
+        t = sp(e) / np.where(ok, den, 1.0)
+        bx = sp(c[:, 0]) + t * (sp(A[:, 0, 0]) * ux + sp(A[:, 0, 1]) * uy)
+        by = sp(c[:, 1]) + t * (sp(A[:, 1, 0]) * ux + sp(A[:, 1, 1]) * uy)
+        dark = np.zeros(len(ux))
         for b in range(2):
-            m = d.scan_board == b
-            dark[m] = dark_returns(origin[m], dirs[m], bR[b], bT[b], d.board_spec,
-                                   d.black_parity[b])
+            m = (d.scan_board == b) & ok
+            dark[m] = dark_share(bx[m], by[m], d.board_spec, d.black_parity[b])
         self.dark = dark
 
     def prior_residuals(self, x: np.ndarray) -> np.ndarray:
