@@ -45,7 +45,6 @@ from .io.dataset import (
     read_stripe_image,
     write_json_atomic,
 )
-from .pixel_jacobian import ray_forms
 from .pose import single_shot_pose
 from .scan import LidarLines, VSegments, fit_v_lines, scan_points, split_v
 from .stripe import (
@@ -74,9 +73,6 @@ class PositionResult:
     segments: VSegments
     lidar_lines: LidarLines
     pose: Pose
-    # the joint fit's per-centre pixel-Jacobian forms at the stripe rays, per board
-    # (lidarcal.pixel_jacobian.ray_forms), computed here in the workers; None: the fit does it
-    stripe_forms: tuple[np.ndarray, np.ndarray] | None = None
 
 
 @dataclass
@@ -156,8 +152,7 @@ def solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView, 
     except ValueError as e:
         raise DatasetError(pos.scan, f"no pose from this scan and stripe image ({e}); check this "
                                      f"position or drop it with --skip {pos.index}") from None
-    return PositionResult(pos.index, pos.psi_deg, cl, seg, ll, pose,
-                          ray_forms(camera, cl.points_3d))
+    return PositionResult(pos.index, pos.psi_deg, cl, seg, ll, pose)
 
 
 def solve_safe(args) -> PositionResult | DatasetError:

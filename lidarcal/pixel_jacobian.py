@@ -1,10 +1,7 @@
-"""d pixel / d point through OpenCV's lens model, and the Binet-Cauchy forms of it that the
-joint fit's stripe scale needs (:meth:`lidarcal.joint.problem._Problem.set_stripe_scale`).
-
-The forms of a centre depend on its ray only up to a scale (``J(lam ray) = J(ray) / lam``,
-the forms go as ``1 / lam^2``): :func:`ray_forms` computes them per position, where the
-position is solved (:func:`lidarcal.pipeline.solve_position`, in the worker processes), and
-the joint fit scales them to the board planes it holds.
+"""d pixel / d point through OpenCV's lens model (:func:`pixel_jacobian`), and the
+Binet-Cauchy forms of it that the joint fit's stripe scale needs
+(:meth:`lidarcal.joint.problem._Problem.set_stripe_scale`): image cross products and lengths
+of directions at a point from nine numbers per point.
 """
 
 from __future__ import annotations
@@ -79,15 +76,3 @@ def quadratic_form_coefficients(v: np.ndarray) -> np.ndarray:
     ``v0^2, v1^2, v2^2, 2 v0 v1, 2 v0 v2, 2 v1 v2``."""
     return np.column_stack([v * v, 2 * v[:, 0] * v[:, 1], 2 * v[:, 0] * v[:, 2],
                             2 * v[:, 1] * v[:, 2]])
-
-
-def ray_forms(camera, points: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
-    """:func:`pixel_jacobian_forms` (each (S_b, 9)) at the rays ``P / P_z`` of camera-frame
-    points (each (S_b, 3), e.g. one position's stripe centres on its boards,
-    ``CameraLines.points_3d``): at a point ``lam ray`` the forms are these over ``lam^2``."""
-    out = []
-    for P in points:
-        P = np.asarray(P, float).reshape(-1, 3)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out.append(pixel_jacobian_forms(camera, P / P[:, 2:3]))
-    return tuple(out)

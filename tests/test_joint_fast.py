@@ -319,46 +319,6 @@ def test_median_overwrite_equals_numpys(n):
     assert np.isnan(median_overwrite(a.copy()))
 
 
-def test_stripe_forms_from_the_positions_equal_the_fits_own():
-    """The pixel-Jacobian forms each position brings (lidarcal.pixel_jacobian.ray_forms, at the
-    rays, computed where the position is solved) scaled to the held planes equal the forms the
-    fit computes itself at the points on the planes, and give the same stripe scales."""
-    from dataclasses import replace
-
-    from lidarcal.joint import joint_data
-    from lidarcal.joint.problem import _stripe_points
-    from lidarcal.pixel_jacobian import pixel_jacobian_forms, ray_forms
-    from lidarcal.study import StudySetting, simulate_rig
-
-    res = simulate_rig(23, StudySetting(n_positions=4)).result
-    plain = joint_data(res, "pnp")
-    assert plain.stripe_forms is None  # the study's positions bring none: the fit's own
-    for p in res.positions:
-        p.stripe_forms = ray_forms(res.camera, p.camera_lines.points_3d)
-    data = joint_data(res, "pnp")
-    assert data.stripe_forms is not None and len(data.stripe_forms) == len(data.stripe_px) > 100
-    assert np.array_equal(data.stripe_rays, plain.stripe_rays)
-    P = _stripe_points(data, data.board_R, data.board_T)["P"]
-    want = pixel_jacobian_forms(data.camera, P)
-    ent = _stripe_points(data, data.board_R, data.board_T, jacobian=True)
-    got = ent["forms"] / (ent["lam"] ** 2)[:, None]
-    assert np.allclose(got, want, rtol=1e-12, atol=1e-15 * np.abs(want).max(axis=0))
-    # the stripe scales from both
-    from lidarcal.joint.fit import _start_bases
-    from lidarcal.joint.problem import _Problem
-
-    scales = []
-    for d in (data, plain):
-        prob = _Problem(d, _start_bases([res.rigid_model], d, 0.0)[0], 0.0)
-        prob.set_stripe_scale(np.zeros(N_RIG))
-        scales.append(prob.scale_px)
-    assert np.allclose(scales[0], scales[1], rtol=1e-12, atol=0)
-    # a position without forms: the fit computes all of them
-    res.positions[1].stripe_forms = None
-    assert joint_data(res, "pnp").stripe_forms is None
-    assert replace(data, stripe_px=data.stripe_px).without_stripes().stripe_forms is None
-
-
 def test_observation_grids_equal_the_rows(noisy_problem):
     """The moment solver's raw observations laid out on the grids (constant parts once per
     data and planes, lidarcal.joint.moments.raw_observations_grid) are the rows of

@@ -25,9 +25,6 @@ class JointData:
     Ranging (:mod:`lidarcal.ranging`): ``board_spec`` and ``black_parity`` (per
     board, :func:`lidarcal.ranging.black_parity`) let the fit tell which returns
     hit a black square; ``scan_dark`` (M,) gives that directly instead (0..1, held).
-    ``stripe_forms`` (S, 9): the pixel Jacobian's forms at each ray
-    (:func:`lidarcal.pixel_jacobian.ray_forms`, computed where the positions were solved;
-    None: the fit computes them).
     """
 
     camera: CameraModel
@@ -48,7 +45,6 @@ class JointData:
     board_spec: BoardSpec | None = None
     black_parity: tuple[int | None, int | None] | None = None
     scan_dark: np.ndarray | None = None
-    stripe_forms: np.ndarray | None = None
 
     @property
     def n_positions(self) -> int:
@@ -58,7 +54,7 @@ class JointData:
         """The same data with no stripe observations (the scan-only fit)."""
         e = np.zeros(0, int)
         return replace(self, stripe_px=np.zeros((0, 2)), stripe_rays=np.zeros((0, 3)),
-                       stripe_pos=e, stripe_board=e, stripe_forms=None)
+                       stripe_pos=e, stripe_board=e)
 
     @property
     def can_see_dark(self) -> bool:
@@ -71,32 +67,25 @@ class JointData:
 
 def _stripe_rays(camera: CameraModel, px: np.ndarray, points: np.ndarray | None = None
                  ) -> np.ndarray:
-    """:func:`_stripe_rays_from` without saying where the rays came from."""
-    return _stripe_rays_from(camera, px, points)[0]
-
-
-def _stripe_rays_from(camera: CameraModel, px: np.ndarray, points: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, bool]:
     """Undistorted rays ``(x, y, 1)`` (S, 3) through the stripe-centre pixels ``px``.
 
     ``points``: the same centres already back-projected (eq. 5, section 1,
     ``CameraLines.points_3d``): their rays are ``P / P_z``, used when a sample of them
     reprojects onto its pixels through ``camera`` (to 1e-6 px); otherwise, or without
-    them, every pixel is undistorted (:func:`lidarcal.camera.pixel_rays`). The flag: the rays
-    are the points'.
+    them, every pixel is undistorted (:func:`lidarcal.camera.pixel_rays`).
     """
     from ..camera import pixel_rays, project_points
 
     if len(px) == 0:
-        return np.zeros((0, 3)), False
+        return np.zeros((0, 3))
     if points is not None and points.shape == (len(px), 3):
         with np.errstate(invalid="ignore", divide="ignore"):
             rays = points / points[:, 2:3]
         pick = np.unique(np.linspace(0, len(px) - 1, min(len(px), 64)).astype(int))
         pick = pick[np.all(np.isfinite(rays[pick]), axis=1)]
         if len(pick) and np.max(np.abs(project_points(camera, rays[pick]) - px[pick])) < 1e-6:
-            return rays, True
-    return pixel_rays(camera, px), False
+            return rays
+    return pixel_rays(camera, px)
 
 
 def _finite_rows(a: np.ndarray) -> np.ndarray:
@@ -114,8 +103,7 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
                      samples: list[Pose] | None = None, indices=None,
                      board_spec: BoardSpec | None = None,
                      black_parity: tuple[int | None, int | None] | None = None,
-                     stripe_points: list[tuple[np.ndarray, np.ndarray]] | None = None,
-                     stripe_forms: list[tuple[np.ndarray, np.ndarray]] | None = None
+                     stripe_points: list[tuple[np.ndarray, np.ndarray]] | None = None
                      ) -> JointData:
     """:class:`JointData` from per-position observations, already assigned to boards.
 
@@ -134,9 +122,6 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
     stripe_points : list of (points_board0 (S0, 3), points_board1 (S1, 3)), optional
         The stripe centres back-projected onto their boards (section 1): their rays
         save undistorting every pixel again (checked on a sample).
-    stripe_forms : list of (forms_board0 (S0, 9), forms_board1 (S1, 9)), optional
-        The pixel Jacobian's forms at those points' rays (:func:`lidarcal.pixel_jacobian.ray_forms`),
-        kept when the rays are the points'.
     """
     psi = np.asarray(psi_deg, dtype=float).ravel()
     if len(scans) != len(psi) or len(stripes) != len(psi):
@@ -156,23 +141,17 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
     if stripe_points is not None and len(psi):
         pts = np.concatenate([np.asarray(sp[b], dtype=float).reshape(-1, 3)
                               for sp in stripe_points for b in range(2)])
-    rays, from_points = _stripe_rays_from(camera, stripe_px, pts)
-    forms = None
-    if from_points and stripe_forms is not None:
-        forms = np.concatenate([np.asarray(f[b], dtype=float).reshape(-1, 9)
-                                for f in stripe_forms for b in range(2)])
-        forms = forms if len(forms) == len(rays) else None
+    rays = _stripe_rays(camera, stripe_px, pts)
     ok = _finite_rows(rays)
     if not ok.all():
         stripe_px, rays, g_cent = stripe_px[ok], rays[ok], g_cent[ok]
-        forms = None if forms is None else forms[ok]
     return JointData(camera, psi, np.arange(len(psi)) if indices is None else np.asarray(indices),
                      xy, g_scan // 2, g_scan % 2, stripe_px, rays, g_cent // 2, g_cent % 2,
                      np.asarray(board_R, float), np.asarray(board_T, float),
                      None if corners_px is None else tuple(np.asarray(c, float) for c in corners_px),
                      None if object_points is None else np.asarray(object_points, float),
                      list(samples or []), board_spec,
-                     None if black_parity is None else tuple(black_parity), None, forms)
+                     None if black_parity is None else tuple(black_parity))
 
 
 def joint_data(result, board_poses: str = "homography") -> JointData:
@@ -186,18 +165,15 @@ def joint_data(result, board_poses: str = "homography") -> JointData:
     if board_poses not in ("homography", "pnp"):
         raise ValueError(f"board_poses must be 'homography' or 'pnp', got {board_poses!r}")
     pnp = board_poses == "pnp"
-    scans, stripes, points, forms = [], [], [], []
+    scans, stripes, points = [], [], []
     for p in result.positions:
         pairs = p.pose.info.get("pairs", (0, 1))
         seg = (p.segments.points1, p.segments.points2)
         scans.append((seg[pairs[0]], seg[pairs[1]]))
         stripes.append(tuple(p.camera_lines.centres_px))
         points.append(tuple(getattr(p.camera_lines, "points_3d", None) or (None, None)))
-        forms.append(getattr(p, "stripe_forms", None))
     if any(q is None for pair in points for q in pair):
         points = None
-    if points is None or any(f is None for f in forms):
-        forms = None
     boards = result.boards
     spec: BoardSpec | None = getattr(getattr(result, "dataset", None), "v_board", None)
     obj = spec.object_points() if spec is not None else None
@@ -211,4 +187,4 @@ def joint_data(result, board_poses: str = "homography") -> JointData:
                             np.array([b.T_pnp if pnp else b.T for b in boards]),
                             [b.corners_px for b in boards] if obj is not None else None, obj,
                             [p.pose for p in result.positions], [p.index for p in result.positions],
-                            spec, parity, points, forms)
+                            spec, parity, points)

@@ -386,8 +386,6 @@ class _Problem:
         if np.any(pl2 <= 0):
             raise ValueError("a stripe images to a point: no stripe direction in the image")
         perp = np.abs(cross) / np.sqrt(pl2)
-        if "lam" in ent:  # forms at the rays: both over lam^2 at P, the ratio over lam
-            perp /= ent["lam"]
         du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
         self.scale_px = perp / self.stripe.spread(np.maximum(du, 1e-9))
         self.scale_depth = ent["P"][:, 2].copy()  # the depths it holds at (stripe_scale)
@@ -414,9 +412,7 @@ def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bo
                    cache: bool = True) -> dict:
     """Stripe centres back-projected onto their boards (eq. 5), ``P`` (S, 3), and with
     ``jacobian`` the forms of d pixel / d P through the lens model, ``forms`` (S, 9)
-    (:func:`lidarcal.pixel_jacobian.pixel_jacobian_forms`), or ``data.stripe_forms``, the
-    forms at the rays, when it has them, with ``lam`` (S,): ``P = lam ray``, the forms at
-    ``P`` are those over ``lam^2``.
+    (:func:`lidarcal.pixel_jacobian.pixel_jacobian_forms`).
 
     Both depend on the board planes only: with the planes held (``cache``) they are
     computed once per :class:`JointData` and board poses.
@@ -432,11 +428,7 @@ def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bo
         dd = np.einsum("ij,ij->i", n, bT)
         ent = per[key] = {"P": ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]}
     if jacobian and "forms" not in ent:
-        if data.stripe_forms is not None:  # at the rays: P = lam ray, J(P) = J(ray) / lam
-            ent["forms"] = data.stripe_forms
-            ent["lam"] = ent["P"][:, 2] / data.stripe_rays[:, 2]
-        else:
-            ent["forms"] = pixel_jacobian_forms(data.camera, ent["P"])
+        ent["forms"] = pixel_jacobian_forms(data.camera, ent["P"])
     return ent
 
 
