@@ -210,6 +210,14 @@ def dark_returns(origins: np.ndarray, directions: np.ndarray, board_R: np.ndarra
     t = (d - origins @ n) / np.where(np.abs(den) > 1e-12, den, np.nan)
     hit = origins + t[:, None] * directions
     b = (hit - board_T) @ board_R  # board coordinates (columns x, y, z)
+    return np.where(np.isfinite(t), dark_share(b[:, 0], b[:, 1], board, parity, blend_mm), 0.0)
+
+
+def dark_share(bx: np.ndarray, by: np.ndarray, board: BoardSpec, parity: int,
+               blend_mm: float = EDGE_BLEND_MM) -> np.ndarray:
+    """:func:`dark_returns` at hits given in board coordinates ``bx``, ``by`` (mm, the board
+    frame of the PnP pose): the share of black square under each, ramped within
+    ``blend_mm`` of a square edge, 0 off the pattern."""
     cols, rows = board.inner_corners
     sq = board.square_mm
     h = max(float(blend_mm), 1e-9)
@@ -221,13 +229,13 @@ def dark_returns(origins: np.ndarray, directions: np.ndarray, board_R: np.ndarra
         dist = np.minimum(q - i, i + 1 - q) * sq  # to the nearest edge, mm
         return np.where(i % 2 == 0, 1.0, -1.0) * np.clip(dist / h, 0.0, 1.0)
 
-    checker = wave(b[:, 0]) * wave(b[:, 1])  # +1 on squares with i + j even
+    checker = wave(bx) * wave(by)  # +1 on squares with i + j even
     share = 0.5 * (1 + checker) if parity == 0 else 0.5 * (1 - checker)
     # the pattern spans squares -1..cols-1 (x) and -1..rows-1 (y); white margin beyond
-    inside_x = np.minimum(b[:, 0] + sq, cols * sq - b[:, 0])
-    inside_y = np.minimum(b[:, 1] + sq, rows * sq - b[:, 1])
+    inside_x = np.minimum(bx + sq, cols * sq - bx)
+    inside_y = np.minimum(by + sq, rows * sq - by)
     inside = np.clip(np.minimum(inside_x, inside_y) / (2 * h) + 0.5, 0.0, 1.0)
-    return np.where(np.isfinite(t), share * inside, 0.0)
+    return share * inside
 
 
 def ranging_text(ranging: dict | RangingModel | None, fmt: str = "text") -> str:

@@ -164,14 +164,14 @@ def test_stripe_rays_from_section1_points_equal_undistortion():
 
 @pytest.mark.parametrize("seed", range(3))
 def test_stripe_pixel_jacobian_equals_opencv(seed):
-    """d pixel / d point of the stripe scale (lidarcal.joint.problem.pixel_jacobian) from the
+    """d pixel / d point of the stripe scale (lidarcal.pixel_jacobian.pixel_jacobian) from the
     camera's distortion Jacobian equals cv2.projectPoints' Jacobian wrt the translation, for
     random cameras with all five distortion coefficients, over the image (a skew in K:
     ignored by both, as cv2.projectPoints does)."""
     import cv2
 
     from lidarcal.io.dataset import CameraModel
-    from lidarcal.joint.problem import pixel_jacobian
+    from lidarcal.pixel_jacobian import pixel_jacobian
 
     rng = np.random.default_rng(seed)
     K = np.array([[rng.uniform(800, 2000), rng.uniform(-2, 2), rng.uniform(600, 700)],
@@ -184,6 +184,96 @@ def test_stripe_pixel_jacobian_equals_opencv(seed):
     _, J = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
     J0 = J[:, 3:6].reshape(-1, 2, 3)
     assert np.allclose(pixel_jacobian(cam, P), J0, rtol=1e-9, atol=1e-12 * np.abs(J0).max())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_pixel_jacobian_forms_equal_those_of_opencvs_jacobian(seed):
+    """The Binet-Cauchy forms of d pixel / d point (row cross product, J^T J) computed from the
+    distortion's Jacobian (lidarcal.pixel_jacobian.pixel_jacobian_forms) equal those of
+    cv2.projectPoints' Jacobian wrt the translation, for random five-coefficient cameras."""
+    import cv2
+
+    from lidarcal.io.dataset import CameraModel
+    from lidarcal.pixel_jacobian import jacobian_forms, pixel_jacobian_forms
+
+    rng = np.random.default_rng(10 + seed)
+    K = np.array([[rng.uniform(800, 2000), 0.0, rng.uniform(600, 700)],
+                  [0.0, rng.uniform(800, 2000), rng.uniform(400, 500)], [0.0, 0.0, 1.0]])
+    dist = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-1e-3, 1e-3),
+                     rng.uniform(-1e-3, 1e-3), rng.uniform(-0.05, 0.05)])
+    z = rng.uniform(300, 1500, 200)
+    P = np.column_stack([rng.uniform(-0.5, 0.5, 200) * z, rng.uniform(-0.4, 0.4, 200) * z, z])
+    _, J = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+    F0 = jacobian_forms(J[:, 3:6].reshape(-1, 2, 3))
+    F1 = pixel_jacobian_forms(CameraModel(K, dist, (1280, 960)), P)
+    assert np.allclose(F1, F0, rtol=1e-9, atol=1e-12 * np.abs(F0).max(axis=0))
+
+
+def test_stripe_scale_equals_the_imaged_directions(noisy_problem):
+    """The stripe scale from the Binet-Cauchy forms (:meth:`_Problem.set_stripe_scale`) equals
+    the direct one: board direction u and stripe direction l imaged by each centre's pixel
+    Jacobian, |J u x J l| / |J l| per mm of laser offset, at the start and at a rig step."""
+    from lidarcal.geometry import unit
+    from lidarcal.joint.params import _poses, _rig
+    from lidarcal.joint.problem import _stripe_points
+    from lidarcal.pixel_jacobian import pixel_jacobian
+
+    prob = noisy_problem
+    d = prob.data
+    J = pixel_jacobian(d.camera, _stripe_points(d, d.board_R, d.board_T)["P"])
+    saved = prob.scale_px, prob.scale_depth
+    try:
+        for step in (0.0, 0.02):
+            x = np.zeros(N_RIG + 12 + 2)
+            x[[0, 5]] = step
+            prob.set_stripe_scale(x)
+            R, _ = _poses(*_rig(x[:N_RIG], prob.base), prob.t)
+            g = 2 * d.stripe_pos + d.stripe_board
+            n, zL = d.board_R[d.stripe_board, :, 2], R[d.stripe_pos, :, 2]
+            line = unit(np.cross(n, zL))
+            u = unit(np.cross(n, line))
+            pu, pl = np.einsum("mij,mj->mi", J, u), np.einsum("mij,mj->mi", J, line)
+            perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0]) / np.hypot(*pl.T)
+            want = perp / np.maximum(np.abs(np.einsum("ij,ij->i", zL, u)), 1e-9)
+            assert len(np.unique(g)) > 2
+            assert np.allclose(prob.scale_px, want, rtol=1e-10, atol=0), step
+    finally:
+        prob.scale_px, prob.scale_depth = saved
+
+
+def test_grid_layout_equals_the_rows():
+    """The moment solver's grid layout (:meth:`_Groups.pad_columns`, groups of unequal size,
+    one empty): the whitening there (:func:`whiten_padded`) is the row whitening times the
+    mask, per-row dot products (:func:`padded_rows_dot`) and the moments ``sum W h h^T`` and
+    ``sum v h`` are those of the rows group by group."""
+    from lidarcal.joint.noise import _Groups, padded_rows_dot, whiten_padded
+
+    rng = np.random.default_rng(7)
+    n_pos = 3
+    size = np.array([5, 40, 0, 17, 60, 33])  # rows of group 2 i + b
+    gid = np.repeat(np.arange(2 * n_pos), size)
+    g = _Groups(gid // 2, gid % 2, rng.normal(size=(len(gid), 2)) * [50.0, 2.0], n_pos)
+    g.set_mask(rng.random(len(gid)) > 0.1)
+    g.set([0.7, 1.3], [0.2, 0.05], [1e-4, 3e-4], rng.uniform(0.1, 0.3, 2 * n_pos), None)
+    h = rng.normal(size=(len(gid), 4))
+    H = whiten_padded(g, g.pad_columns(h))
+    assert H.shape == (2 * n_pos, 4, size.max())
+    rows = g.whiten_columns(h) * g.w[:, None]
+    assert np.allclose(H.transpose(0, 2, 1).reshape(-1, 4)[g._grid], rows, rtol=0, atol=1e-13)
+    c, W = rng.normal(size=(2 * n_pos, 4)), rng.uniform(0.2, 1.0, len(gid))
+    assert np.allclose(padded_rows_dot(g, H, c), np.einsum("mk,mk->m", rows, c[gid]),
+                       rtol=0, atol=1e-13)
+    Q = np.matmul(H * g.pad(W)[:, None, :], H.transpose(0, 2, 1))
+    b = np.matmul(H, g.pad(W)[:, :, None])[:, :, 0]
+    for k in range(2 * n_pos):
+        m = gid == k
+        assert np.allclose(Q[k], (rows[m] * W[m, None]).T @ rows[m], rtol=0, atol=1e-12)
+        assert np.allclose(b[k], W[m] @ rows[m], rtol=0, atol=1e-12)
+    assert np.array_equal(g.unpad(g.pad(W)), W)
+    g.set([0.7, 1.3], [0.0, 0.0], [0.0, 0.0])  # white noise: whitening is a scaling
+    rows = g.whiten_columns(h) * g.w[:, None]
+    H = whiten_padded(g, g.pad_columns(h)).transpose(0, 2, 1).reshape(-1, 4)[g._grid]
+    assert np.array_equal(H, rows)
 
 
 def test_whitening_of_large_groups_equals_the_row_gather():
@@ -213,3 +303,68 @@ def test_whitening_of_large_groups_equals_the_row_gather():
         out.append(np.empty_like(w))
         out[-1][idx] = w
     assert np.allclose(out[0], out[1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 11, 1000, 1001, 36561])
+def test_median_overwrite_equals_numpys(n):
+    """The joint fit's median (one partition, lidarcal.joint.params.median_overwrite) is
+    numpy's, bit for bit, for odd and even counts, ties and a NaN."""
+    from lidarcal.joint.params import median_overwrite
+
+    rng = np.random.default_rng(n)
+    for a in (np.abs(rng.standard_t(3, n)), np.round(rng.normal(size=n), 1)):
+        assert median_overwrite(a.copy()) == np.median(a)
+    a = rng.normal(size=n)
+    a[n // 3] = np.nan
+    assert np.isnan(median_overwrite(a.copy()))
+
+
+def test_observation_grids_equal_the_rows(noisy_problem):
+    """The moment solver's raw observations laid out on the grids (constant parts once per
+    data and planes, lidarcal.joint.moments.raw_observations_grid) are the rows of
+    raw_observations, and rows with a non-finite entry are found as numpy's all() finds them."""
+    from lidarcal.joint.data import _finite_rows
+    from lidarcal.joint.moments import raw_observations, raw_observations_grid
+
+    prob = noisy_problem
+    for grp, rows, grid in zip((prob.scan, prob.stripe), raw_observations(prob),
+                               raw_observations_grid(prob)):
+        assert np.array_equal(grid, grp.pad_columns(rows))
+    a = np.random.default_rng(3).normal(size=(50, 3))
+    a[[3, 9, 20], [0, 2, 1]] = [np.nan, np.inf, -np.inf]
+    assert np.array_equal(_finite_rows(a), np.all(np.isfinite(a), axis=1))
+
+
+def test_dark_classification_equals_the_beams_cut_with_the_boards():
+    """The joint fit's dark shares (per group, hits in board coordinates from the LiDAR plane,
+    _Problem.classify) equal lidarcal.ranging.dark_returns on every beam in the camera frame,
+    at the start and at a rig step, with returns on both colours."""
+    import copy
+
+    from lidarcal.joint import joint_data
+    from lidarcal.joint.fit import _start_bases
+    from lidarcal.joint.params import _boards
+    from lidarcal.joint.problem import _Problem
+    from lidarcal.ranging import dark_returns
+    from lidarcal.study import StudySetting, simulate_rig
+
+    res = simulate_rig(21, StudySetting(n_positions=6)).result
+    data = joint_data(res, "pnp")
+    assert data.can_see_dark and data.scan_dark is None
+    prob = _Problem(data, _start_bases([res.rigid_model], data, 0.0)[0], 0.0)
+    for step in (0.0, 0.01):
+        x = np.zeros(N_RIG + 12)
+        x[[1, 4, 8]] = [step, step, 50 * step]
+        q = copy.copy(prob)
+        q.classify(x)
+        R, T = _poses(*_rig(x[:N_RIG], prob.base), prob.t)
+        bR, bT = _boards(x, prob.base)
+        p, u = data.scan_pos, prob.scan_u
+        dirs = R[p, :, 0] * u[:, :1] + R[p, :, 1] * u[:, 1:]
+        want = np.zeros(len(p))
+        for b in range(2):
+            m = data.scan_board == b
+            want[m] = dark_returns(T[p][m], dirs[m], bR[b], bT[b], data.board_spec,
+                                   data.black_parity[b])
+        assert 0.1 < np.mean(want > 0.5) < 0.9
+        assert np.allclose(q.dark, want, rtol=0, atol=1e-9), step

@@ -88,6 +88,15 @@ def _stripe_rays(camera: CameraModel, px: np.ndarray, points: np.ndarray | None 
     return pixel_rays(camera, px)
 
 
+def _finite_rows(a: np.ndarray) -> np.ndarray:
+    """Rows of ``a`` (N, k) with every entry finite: ``np.all(np.isfinite(a), axis=1)``, column
+    by column (numpy's reduction over short rows is slow)."""
+    ok = np.ones(len(a), bool)
+    for j in range(a.shape[1]):
+        ok &= np.isfinite(a[:, j])
+    return ok
+
+
 def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray, np.ndarray]],
                      stripes: list[tuple[np.ndarray, np.ndarray]], board_R: np.ndarray,
                      board_T: np.ndarray, corners_px=None, object_points=None,
@@ -124,7 +133,7 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
     g_scan = np.repeat(np.arange(n2), [len(a) for a in scan])
     g_cent = np.repeat(np.arange(n2), [len(a) for a in cent])
     xy = np.concatenate(scan) if scan else np.zeros((0, 2))
-    keep = np.all(np.isfinite(xy), axis=1)
+    keep = _finite_rows(xy)
     if not keep.all():
         xy, g_scan = xy[keep], g_scan[keep]
     stripe_px = np.concatenate(cent) if cent else np.zeros((0, 2))
@@ -133,7 +142,7 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
         pts = np.concatenate([np.asarray(sp[b], dtype=float).reshape(-1, 3)
                               for sp in stripe_points for b in range(2)])
     rays = _stripe_rays(camera, stripe_px, pts)
-    ok = np.all(np.isfinite(rays), axis=1)
+    ok = _finite_rows(rays)
     if not ok.all():
         stripe_px, rays, g_cent = stripe_px[ok], rays[ok], g_cent[ok]
     return JointData(camera, psi, np.arange(len(psi)) if indices is None else np.asarray(indices),

@@ -4,13 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .moments import (
-    _MomentProblem,
-    _rows_dot,
-    cached_observations,
-    moments_usable,
-    raw_observations,
-)
+from .moments import _MomentProblem, moments_usable, whitened_observations
 from .params import N_RIG
 from .problem import _Problem
 from .solver import _irls_weights
@@ -25,26 +19,26 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
     ``-g_i / H_i`` (rad) and its variance ``s^2 / H_i`` (``s^2 >= 1`` the weighted residual
     variance). Planes held (rows grouped): ``J`` of a row is ``h . dc/dt`` whitened like
     its residual (:meth:`lidarcal.joint.moments._MomentProblem.angle_coefficients`; the
-    solver's whitened observations when at hand, else
-    :func:`lidarcal.joint.moments.raw_observations` whitened); otherwise one central
-    difference of all angles at once.
+    solver's whitened observations when at hand, else built for ``prob``'s noise model,
+    :func:`lidarcal.joint.moments.whitened_observations`); otherwise one central difference of all
+    angles at once.
     """
     d = prob.data
     n = d.n_positions
     pos = np.concatenate([d.scan_pos, d.stripe_pos])
     if len(x) == N_RIG + prob.n_ranging and moments_usable(prob, False):
+        # on the groupings' grids (zero on padding and dropped rows), sums per group of each
+        # position's two (2 i + b)
         cs, dcs, cp, dcp = _MomentProblem(prob, observations=False).angle_coefficients(x)
-        obs = cached_observations(prob)
-        rows = []
-        if obs is not None:  # the solver's whitened observations
-            for grp, h, c, dc in ((prob.scan, obs["hs"], cs, dcs), (prob.stripe, obs["hp"], cp, dcp)):
-                rows += [_rows_dot(h, c, grp), _rows_dot(h, dc, grp)]
-        else:
-            for grp, h, c, dc in zip((prob.scan, prob.stripe), raw_observations(prob),
-                                     (cs, cp), (dcs, dcp)):
-                for v in (c, dc):  # residual and its derivative, whitened like the residuals
-                    rows.append(grp.whiten(_rows_dot(h, v, grp)) * grp.w)
-        r0, J = np.concatenate(rows[0::2]), np.concatenate(rows[1::2])
+        obs = whitened_observations(prob, store=False)  # the solver's, when at hand for this noise
+        H, g, ss = np.zeros(n), np.zeros(n), 0.0
+        for h, c, dc in ((obs["hs"], cs, dcs), (obs["hp"], cp, dcp)):
+            r0, J = np.matmul(c[:, None, :], h)[:, 0], np.matmul(dc[:, None, :], h)[:, 0]
+            w = _irls_weights(r0 / f_scale, loss)
+            wJ = w * J
+            H += (wJ * J).sum(1).reshape(n, 2).sum(1)
+            g += (wJ * r0).sum(1).reshape(n, 2).sum(1)
+            ss += float(np.sum(w * r0 * r0))
     else:
         t0 = prob.t
         h = 1e-5
@@ -57,10 +51,11 @@ def _angle_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float
         m = len(pos)  # the ranging prior's pseudo-residuals follow: they do not move with t
         r0, rp, rm = r0[:m], rp[:m], rm[:m]
         J = (rp - rm) / (2 * h)
-    w = _irls_weights(r0 / f_scale, loss)
-    H = np.bincount(pos, w * J * J, minlength=n)
-    g = np.bincount(pos, w * J * r0, minlength=n)
-    s2 = max(float(np.sum(w * r0 * r0)) / max(len(r0) - N_RIG - n, 1), 1.0)
+        w = _irls_weights(r0 / f_scale, loss)
+        H = np.bincount(pos, w * J * J, minlength=n)
+        g = np.bincount(pos, w * J * r0, minlength=n)
+        ss = float(np.sum(w * r0 * r0))
+    s2 = max(ss / max(len(pos) - N_RIG - n, 1), 1.0)
     ok = H > 1e-300
     step = np.where(ok, -g / np.where(ok, H, 1.0), 0.0)
     return step, np.where(ok, s2 / np.where(ok, H, 1.0), np.inf)

@@ -30,7 +30,7 @@ import weakref
 
 import numpy as np
 
-from .noise import BLOCK_ROWS, _Groups
+from .noise import _Groups, padded_rows_dot, whiten_padded
 from .params import N_BOARD, N_RIG, _poses, _rig
 from .problem import _Problem, _stripe_points
 from .solver import (
@@ -41,12 +41,6 @@ from .solver import (
     _lm_step,
     _rho_and_weights,
 )
-
-
-def _whitened(grp: _Groups, h: np.ndarray) -> np.ndarray:
-    """``V^-1/2`` of every column of ``h`` (rows grouped and sorted by ``grp.gid``)."""
-    return grp.whiten_columns(h)
-
 
 _OBS_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -73,16 +67,42 @@ def raw_observations(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
     return hs, hp
 
 
-def cached_observations(prob: _Problem) -> dict | None:
-    """:func:`_observations` when they are already at hand for ``prob``'s noise state, else None."""
-    return _observations(prob, build=False)
+_GRID_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _observations(prob: _Problem, build: bool = True) -> dict | None:
+def raw_observations_grid(prob: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`raw_observations` on the groupings' grids (:meth:`lidarcal.joint.noise._Groups.pad_columns`),
+    (G, 7, n_max) and (G, 4, n_max): the parts that do not change during a fit (scan points,
+    beam directions, stripe points on the held planes) are laid out once per data and planes;
+    the dark shares and the stripe scales are laid out as they are."""
+    d, scan, stripe = prob.data, prob.scan, prob.stripe
+    key = prob.base.board_R.tobytes() + prob.base.board_T.tobytes()
+    const = _GRID_CACHE.get(d)
+    if const is None or const["planes"] != key:
+        P = _stripe_points(d, prob.base.board_R, prob.base.board_T)["P"]
+        const = _GRID_CACHE[d] = {
+            "planes": key, "P": stripe.pad_columns(P),
+            "xyu1": scan.pad_columns(np.column_stack([d.scan_xy, prob.scan_u,
+                                                      np.ones(len(d.scan_xy))])),
+            "one_p": stripe.pad(np.ones(len(P)))}
+    xyu1, P = const["xyu1"], const["P"]
+    hs = np.empty((xyu1.shape[0], 7, xyu1.shape[2]))
+    hs[:, :4], hs[:, 6] = xyu1[:, :4], xyu1[:, 4]
+    np.multiply(scan.pad(prob.dark)[:, None, :], xyu1[:, 2:4], out=hs[:, 4:6])
+    hp = np.empty((P.shape[0], 4, P.shape[2]))
+    hp[:, 3] = stripe.pad(prob.scale_px)
+    np.multiply(hp[:, 3:], P, out=hp[:, :3])
+    return hs, hp
+
+
+def whitened_observations(prob: _Problem, build: bool = True, store: bool = True) -> dict | None:
     """Whitened, masked homogeneous observations ``h~`` of scans (M, 7) and stripes (S, 4)
-    (module docstring), as ``{"hs": .., "hp": ..}``.
+    (module docstring), as ``{"hs": .., "hp": ..}``, each on its grouping's grid
+    (:meth:`lidarcal.joint.noise._Groups.pad_columns`: (G, k, n_max), zero where dropped or
+    padded).
     They do not depend on the rig parameters: computed once per noise state and reused by
-    every solve, the covariance and the jitter test on it."""
+    every solve, the covariance and the jitter test on it (``store`` False: built, when not
+    at hand, without replacing the ones kept, e.g. for a trial noise model)."""
     state = _noise_state(prob)
     hit = _OBS_CACHE.get(prob.data)
     if hit is not None and all(a is b for a, b in zip(hit[0][:-1], state[:-1])) \
@@ -90,13 +110,10 @@ def _observations(prob: _Problem, build: bool = True) -> dict | None:
         return hit[1]
     if not build:
         return None
-    hs, hp = raw_observations(prob)
-    hs = _whitened(prob.scan, hs)
-    hs *= prob.scan.w[:, None]
-    hp = _whitened(prob.stripe, hp)
-    hp *= prob.stripe.w[:, None]
-    obs = {"hs": hs, "hp": hp}
-    _OBS_CACHE[prob.data] = (state, obs)
+    hs, hp = raw_observations_grid(prob)
+    obs = {"hs": whiten_padded(prob.scan, hs), "hp": whiten_padded(prob.stripe, hp)}
+    if store:
+        _OBS_CACHE[prob.data] = (state, obs)
     return obs
 
 
@@ -112,10 +129,11 @@ class _MomentProblem:
         self.nb = bR[:, :, 2]
         self.db = np.einsum("ij,ij->i", self.nb, bT)
         if observations:
-            self.obs = _observations(prob)
+            self.obs = whitened_observations(prob)
             self.hs, self.hp = self.obs["hs"], self.obs["hp"]
         self.gs, self.gp = prob.scan.gid, prob.stripe.gid
         self._coef_memo: dict = {}
+        self._products: dict = {}  # moments' work arrays W h~, by shape
         self._memo_base = prob.base
         self.n_groups = prob.scan.n_groups
         self.cuts_s = np.searchsorted(self.gs, np.arange(self.n_groups + 1))
@@ -139,35 +157,30 @@ class _MomentProblem:
 
     def _coefficients(self, x: np.ndarray, derivatives: bool
                       ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
-        """:meth:`coefficients`, computed."""
+        """:meth:`coefficients`, computed per position and laid out per group ``2 i + b``
+        (a position's two groups share its pose, each with its board's plane)."""
         prob = self.prob
         xr, rv = prob.split(x)
-        if not derivatives:
+        if derivatives:
+            R, T, G = prob.pose_derivatives(xr)
+        else:
             R, T = _poses(*_rig(xr, prob.base), prob.t)
-            pos = np.repeat(np.arange(len(prob.t)), 2)
-            n = self.nb[np.tile([0, 1], len(prob.t))]
-            a = np.einsum("gi,gi->g", n, R[pos, :, 0])
-            b = np.einsum("gi,gi->g", n, R[pos, :, 1])
-            gam = np.einsum("gi,gi->g", n, T[pos]) - self.db[np.tile([0, 1], len(prob.t))]
-            off, ex = rv[0], rv[1]
-            z = R[pos, :, 2]
-            return (np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam]), None,
-                    np.column_stack([z, -np.einsum("gi,gi->g", T[pos], z)]), None)
-        R, T, G = prob.pose_derivatives(xr)
-        n_pos = len(prob.t)
-        pos = np.repeat(np.arange(n_pos), 2)
-        brd = np.tile([0, 1], n_pos)
-        n = self.nb[brd]  # (G, 3)
-        Rg, Tg, Gg = R[pos], T[pos], G[pos]
-        a = np.einsum("gi,gi->g", n, Rg[:, :, 0])
-        b = np.einsum("gi,gi->g", n, Rg[:, :, 1])
-        gam = np.einsum("gi,gi->g", n, Tg) - self.db[brd]
-        da = np.einsum("gi,gij->gj", n, Gg[:, 0:3])
-        db = np.einsum("gi,gij->gj", n, Gg[:, 3:6])
-        dg = np.einsum("gi,gij->gj", n, Gg[:, 9:12])
+        n_grp = 2 * len(R)
+        nb = self.nb  # (2, 3): per position, both boards at once, (N, 2) -> groups 2 i + b
+        a = (R[:, :, 0] @ nb.T).ravel()
+        b = (R[:, :, 1] @ nb.T).ravel()
+        gam = (T @ nb.T - self.db).ravel()
         off, ex = rv[0], rv[1]
         cs = np.column_stack([a, b, -off * a, -off * b, -ex * a, -ex * b, gam])
-        Js = np.zeros((len(pos), 7, self.n_par))
+        z = R[:, :, 2]
+        tz = np.einsum("ij,ij->i", T, z)
+        cp = np.repeat(np.column_stack([z, -tz]), 2, axis=0)
+        if not derivatives:
+            return cs, None, cp, None
+        da = (nb @ G[:, 0:3]).reshape(n_grp, N_RIG)
+        db = (nb @ G[:, 3:6]).reshape(n_grp, N_RIG)
+        dg = (nb @ G[:, 9:12]).reshape(n_grp, N_RIG)
+        Js = np.zeros((n_grp, 7, self.n_par))
         Js[:, 0, :N_RIG], Js[:, 1, :N_RIG] = da, db
         Js[:, 2, :N_RIG], Js[:, 3, :N_RIG] = -off * da, -off * db
         Js[:, 4, :N_RIG], Js[:, 5, :N_RIG] = -ex * da, -ex * db
@@ -178,13 +191,11 @@ class _MomentProblem:
             Js[:, 4, N_RIG + 1], Js[:, 5, N_RIG + 1] = -a, -b
         for j in prob.frozen:  # held ranging terms: no column
             Js[:, :, N_RIG + j] = 0.0
-        z = Rg[:, :, 2]
-        dz = Gg[:, 6:9]
-        cp = np.column_stack([z, -np.einsum("gi,gi->g", Tg, z)])
-        Jp = np.zeros((len(pos), 4, self.n_par))
+        dz = G[:, 6:9]
+        Jp = np.zeros((len(R), 4, self.n_par))
         Jp[:, :3, :N_RIG] = dz
-        Jp[:, 3, :N_RIG] = -(np.einsum("gi,gij->gj", Tg, dz) + np.einsum("gi,gij->gj", z, Gg[:, 9:12]))
-        return cs, Js, cp, Jp
+        Jp[:, 3, :N_RIG] = -(np.einsum("ni,nij->nj", T, dz) + np.einsum("ni,nij->nj", z, G[:, 9:12]))
+        return cs, Js, cp, np.repeat(Jp, 2, axis=0)
 
     def angle_coefficients(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
         """Per group ``c`` and ``dc/dt`` wrt the group's own turntable angle: scans (G, 7) x 2,
@@ -214,57 +225,45 @@ class _MomentProblem:
         dcp = np.column_stack([dz, -np.einsum("gi,gi->g", dTg, z) - np.einsum("gi,gi->g", Tg, dz)])
         return scan(Rg, Tg, self.db[brd]), scan(dRg, dTg, 0.0), cp, dcp
 
-    def residuals(self, cs: np.ndarray, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``."""
-        return (_rows_dot(self.hs, cs, self.prob.scan), _rows_dot(self.hp, cp, self.prob.stripe))
-
-    def first_moments(self, vs: np.ndarray, vp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``sum v h~`` of every group (G, 7) and (G, 4): with ``v = W r`` the gradient moments
-        ``Q c`` of the robust cost (one pass over the observations, no products)."""
+    def residuals(self, cs: np.ndarray, cp: np.ndarray, grid: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised (whitened, masked) scan and stripe residuals for coefficients ``cs``, ``cp``:
+        per row (M,), (S,), or with ``grid`` on the groupings' grids, flattened (G n_max,) (zero
+        on padding and on dropped rows, as on those rows)."""
         out = []
-        for h, v, grp in ((self.hs, vs, self.prob.scan), (self.hp, vp, self.prob.stripe)):
-            if _blocked(grp, h):
-                b = np.zeros((self.n_groups, h.shape[1]))
-                for g, i, j in _blocks(grp):
-                    np.dot(v[i:j], h[i:j], out=b[g])
-                out.append(b)
-            else:
-                out.append(grp.group_sums(h * v[:, None]))
+        for h, c, grp in ((self.hs, cs, self.prob.scan), (self.hp, cp, self.prob.stripe)):
+            out.append(padded_rows_dot(grp, h, c) if not grid
+                       else np.matmul(c[:, None, :], h).reshape(-1))
         return out[0], out[1]
 
-    def moments(self, Ws: np.ndarray, Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4).
+    def _on_grid(self, grp: _Groups, v: np.ndarray, grid: bool) -> np.ndarray:
+        """A value per row (or already on the grid, flattened, with ``grid``) as (G, n_max)."""
+        return v.reshape(grp.n_groups, grp.n_max) if grid else grp.pad(v)
 
-        One small product ``(W h~)^T h~`` per group (rows grouped): no per-row products
+    def first_moments(self, vs: np.ndarray, vp: np.ndarray, grid: bool = False
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """``sum v h~`` of every group (G, 7) and (G, 4): with ``v = W r`` the gradient moments
+        ``Q c`` of the robust cost (one batched product over the groups' grids). ``grid``: ``v``
+        on the grids (:meth:`residuals`)."""
+        return tuple(np.matmul(h, self._on_grid(grp, v, grid)[:, :, None])[:, :, 0]
+                     for h, v, grp in ((self.hs, vs, self.prob.scan),
+                                       (self.hp, vp, self.prob.stripe)))
+
+    def moments(self, Ws: np.ndarray, Wp: np.ndarray, grid: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``Q`` of every group: ``sum W h~ h~^T`` (G, 7, 7) and (G, 4, 4). ``grid``: the weights
+        on the grids (:meth:`residuals`).
+
+        One batched product ``(W h~)^T h~`` over the groups' grids: no per-row products
         stored, nothing to rebuild when the noise model changes."""
         out = []
-        for h, W, cuts in ((self.hs, Ws, self.cuts_s), (self.hp, Wp, self.cuts_p)):
-            Q = np.zeros((self.n_groups, h.shape[1], h.shape[1]))
-            hw = h * W[:, None]
-            for g in np.flatnonzero(np.diff(cuts) > 0):
-                np.matmul(hw[cuts[g]:cuts[g + 1]].T, h[cuts[g]:cuts[g + 1]], out=Q[g])
-            out.append(Q)
+        for h, W, grp in ((self.hs, Ws, self.prob.scan), (self.hp, Wp, self.prob.stripe)):
+            buf = self._products.get(h.shape)
+            if buf is None:  # one work array per shape, reused by every pass (no page faults)
+                buf = self._products[h.shape] = np.empty_like(h)
+            hw = np.multiply(h, self._on_grid(grp, W, grid)[:, None, :], out=buf)
+            out.append(np.matmul(hw, h.transpose(0, 2, 1)))
         return out[0], out[1]
-
-
-def _blocked(grp: _Groups, h: np.ndarray) -> bool:
-    """Whether the rows of ``h`` go group by group (:data:`lidarcal.joint.noise.BLOCK_ROWS`)."""
-    return grp._sorted and len(h) >= BLOCK_ROWS * max(len(grp._nonempty), 1)
-
-
-def _blocks(grp: _Groups):
-    """(group, first row, end row) of every non-empty group (rows grouped)."""
-    return zip(grp._nonempty, grp._starts, grp._starts + grp._size[grp._nonempty])
-
-
-def _rows_dot(h: np.ndarray, c: np.ndarray, grp: _Groups) -> np.ndarray:
-    """``h_i . c_g`` of every row ``i`` with its group's coefficients (M,)."""
-    if not _blocked(grp, h):
-        return np.einsum("mk,mk->m", h, grp.spread(c))
-    r = np.zeros(len(h))
-    for g, i, j in _blocks(grp):
-        np.dot(h[i:j], c[g], out=r[i:j])
-    return r
 
 
 def moments_usable(prob: _Problem, use_corners: bool) -> bool:
@@ -310,7 +309,8 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         """Robust cost at ``x``, its residuals' IRLS weights ``rho'`` and second-order weights
         ``rho' + 2 z^2 rho''`` (scan, stripe, prior), and the residuals."""
         cs, _, cp, _ = mp.coefficients(x, derivatives=False)
-        res = (*mp.residuals(cs, cp), prob.prior_residuals(x))
+        # on the grids: padding and dropped rows have r = 0, rho = 0 and h~ = 0
+        res = (*mp.residuals(cs, cp, grid=True), prob.prior_residuals(x))
         total, weights, curv = 0.0, [], []
         for r in res:
             z = r / f_scale
@@ -327,7 +327,7 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
         # einsum, not BLAS: a threaded dot of ~1e5 entries stalls on a busy machine
         q = float(np.einsum("i,i->", Wr_s, rs) + np.einsum("i,i->", Wr_p, rp)
                   + np.sum(wr * rr * rr))
-        return mp.first_moments(Wr_s, Wr_p), q
+        return mp.first_moments(Wr_s, Wr_p, grid=True), q
 
     Jr = np.zeros((prob.n_ranging, mp.n_par))
     if prob.n_ranging:
@@ -415,11 +415,11 @@ def irls_moments(prob: _Problem, x0: np.ndarray, loss: str = "soft_l1", f_scale:
     for _ in range(max_outer):
         # Newton on the robust cost first (second-order weights); the IRLS step (a
         # majoriser: never increases the cost) when that does not decrease it
-        xi, H = inner(x, b, q, mp.moments(Ws2, Wp2), Wr, Wr2)
+        xi, H = inner(x, b, q, mp.moments(Ws2, Wp2, grid=True), Wr, Wr2)
         cn, W2, C2, res = robust_cost(xi)
         nfev += 1
         if not (np.isfinite(cn) and cn <= cost):
-            xi, H = inner(x, b, q, mp.moments(Ws, Wp), Wr, Wr)
+            xi, H = inner(x, b, q, mp.moments(Ws, Wp, grid=True), Wr, Wr)
             cn, W2, C2, res = robust_cost(xi)
             nfev += 1
         if not (np.isfinite(cn) and cn <= cost * (1 + 1e-12)):
@@ -493,7 +493,8 @@ def _stripe_plane_cross(prob: _Problem, mp: _MomentProblem, Qp: np.ndarray, Wp: 
     Dp = (prob.stripe_plane_rows(rn, db[b][:, None], R[p, :, 2], T[p]) if len(p)
           else np.zeros((0, 4)))
     Dp = prob.stripe.whiten_columns(Dp) * prob.stripe.w[:, None]
-    return _group_cross(mp.hp, Dp, Wp, mp.cuts_p)
+    hp = mp.hp.transpose(0, 2, 1).reshape(-1, mp.hp.shape[1])[prob.stripe._grid]  # rows
+    return _group_cross(hp, Dp, Wp, mp.cuts_p)
 
 
 def moments_covariance(prob: _Problem, loss: str, f_scale: float

@@ -39,6 +39,12 @@ class _Groups:
         self._nonempty = np.flatnonzero(self.n > 0)
         self._starts = starts[self._nonempty]
         self.sc = _along(self, np.asarray(coords, float))
+        # the grid layout (:meth:`pad`): row i of group g at g * n_max + its place in g
+        self.n_max = int(self._size.max()) if self._sorted and len(self._size) else 0
+        self._grid = None  # rows not grouped: no grid (the moment solver is not used)
+        if self._sorted:
+            first = np.repeat(np.cumsum(self._size) - self._size, self._size)
+            self._grid = self.gid * self.n_max + (np.arange(len(self.gid)) - first)
         self.sigma = np.ones(2)
         self.var0 = np.zeros(2)
         self.var1 = np.zeros(2)
@@ -129,6 +135,26 @@ class _Groups:
         out -= self.spread(a0)
         out -= self.spread(a1) * self.sc[:, None]
         return out
+
+    def pad(self, v: np.ndarray) -> np.ndarray:
+        """A value per row (M,) laid out group by group on a grid (G, n_max), zeros where a
+        group has fewer rows (rows grouped, as built): per-group sums and products become
+        one batched ``np.matmul`` over the groups (:func:`whiten_padded`)."""
+        out = np.zeros(self.n_groups * self.n_max)
+        out[self._grid] = v
+        return out.reshape(self.n_groups, self.n_max)
+
+    def pad_columns(self, A: np.ndarray) -> np.ndarray:
+        """The columns of ``A`` (M, k) on the grid of :meth:`pad`, (G, k, n_max): a group's
+        column is contiguous (long inner loops for numpy). Rows placed, then transposed."""
+        k = A.shape[1]
+        rows = np.zeros((self.n_groups * self.n_max, k))
+        rows[self._grid] = A
+        return np.ascontiguousarray(rows.reshape(self.n_groups, self.n_max, k).transpose(0, 2, 1))
+
+    def unpad(self, A: np.ndarray) -> np.ndarray:
+        """:meth:`pad` undone: the grid (G, n_max) back to rows (M,)."""
+        return A.reshape(-1)[self._grid]
 
     def group_sums(self, A: np.ndarray) -> np.ndarray:
         """Per-group column sums of ``A`` (M, k) -> (G, k): one ``np.add.reduceat`` when the
@@ -227,3 +253,54 @@ def _along(grp: _Groups, coords: np.ndarray) -> np.ndarray:
     _, V = np.linalg.eigh(np.stack([np.stack([sxx, sxy], 1), np.stack([sxy, syy], 1)], 1))
     v = V[:, :, 1] * (n >= 3)[:, None]  # eigenvalues ascending: the last is the principal direction
     return np.einsum("ij,ij->i", q, grp.spread(v))
+
+
+def _blocked(grp: _Groups, h: np.ndarray) -> bool:
+    """Whether the rows of ``h`` go group by group (:data:`BLOCK_ROWS`)."""
+    return grp._sorted and len(h) >= BLOCK_ROWS * max(len(grp._nonempty), 1)
+
+
+def _blocks(grp: _Groups):
+    """(group, first row, end row) of every non-empty group (rows grouped)."""
+    return zip(grp._nonempty, grp._starts, grp._starts + grp._size[grp._nonempty])
+
+
+def _rows_dot(h: np.ndarray, c: np.ndarray, grp: _Groups) -> np.ndarray:
+    """``h_i . c_g`` of every row ``i`` with its group's coefficients: ``c`` (G, k) gives (M,),
+    ``c`` (G, k, q) gives (M, q) (row ``i`` times its group's matrix)."""
+    if not _blocked(grp, h):
+        if c.ndim == 2:
+            return np.einsum("mk,mk->m", h, grp.spread(c))
+        return np.einsum("mk,mkq->mq", h, grp.spread(c))
+    r = np.zeros((len(h),) + c.shape[2:])
+    for g, i, j in _blocks(grp):
+        np.dot(h[i:j], c[g], out=r[i:j])
+    return r
+
+
+def whiten_padded(grp: _Groups, h: np.ndarray) -> np.ndarray:
+    """:meth:`_Groups.whiten_columns` times the mask ``w`` of observations on the grid of
+    :meth:`_Groups.pad_columns`, ``h`` (G, k, n_max), in place: ``(h - g0 m0 - g1 s m1) w /
+    sigma`` with the group means ``m0 = sum w h / n`` and slopes ``m1 = sum w s h / |s|^2``
+    as one batched product over the groups (padding has ``w = 0``: it stays zero)."""
+    inv = 1 / grp.sig_g
+    out, w = h, grp.pad(grp.w)
+    if not (np.any(grp.g0) or np.any(grp.g1)):  # white noise (no group terms): a scaling
+        out *= inv[:, None, None]
+        out *= w[:, None, :]
+        return out
+    s = grp.pad(grp.sc)
+    sums = np.matmul(out, np.stack([w, w * s], 2))  # (G, k, 2)
+    a0 = sums[:, :, 0] * (grp.g0 * inv / np.maximum(grp.n, 1e-300))[:, None]
+    a1 = sums[:, :, 1] * (grp.g1 * inv / grp.ss)[:, None]
+    out *= inv[:, None, None]
+    out -= a0[:, :, None]
+    out -= a1[:, :, None] * s[:, None, :]
+    out *= w[:, None, :]
+    return out
+
+
+def padded_rows_dot(grp: _Groups, h: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``h_i . c_g`` of every row with its group's coefficients ``c`` (G, k), ``h`` on the grid
+    of :meth:`_Groups.pad_columns` (G, k, n_max): rows (M,)."""
+    return grp.unpad(np.matmul(c[:, None, :], h))

@@ -85,6 +85,20 @@ def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def _robust_sigma(r: np.ndarray, floor: float) -> float:
+    """``MAD_TO_SIGMA x median |r|`` (the median absolute residual as a Gaussian sigma), at
+    least ``floor``; 1 without residuals."""
     if len(r) == 0:
         return 1.0
-    return float(max(MAD_TO_SIGMA * np.median(np.abs(r), overwrite_input=True), floor))
+    return float(max(MAD_TO_SIGMA * median_overwrite(np.abs(r)), floor))
+
+
+def median_overwrite(a: np.ndarray) -> float:
+    """``np.median(a)`` of a 1-D array, reordering ``a``: one partition about the upper
+    middle (the lower middle of an even count is the largest entry below it), the same value
+    as numpy's (NaN when ``a`` holds one) at a fraction of its cost on ~1e5 entries."""
+    n = len(a)
+    if n == 0 or np.isnan(a.max()):
+        return float(np.median(a))
+    k = n // 2
+    a.partition(k)
+    return float(a[k]) if n % 2 else float(0.5 * (a[k] + a[:k].max()))

@@ -10,8 +10,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..geometry import skew, so3_left_jacobian, unit
+from ..pixel_jacobian import pixel_jacobian_forms, quadratic_form_coefficients
 from .data import JointData
-from .noise import _Groups
+from .noise import _Groups, _rows_dot
 from .params import (
     _STEPS,
     N_BOARD,
@@ -73,20 +74,32 @@ class _Problem:
         d = self.data
         if d.scan_dark is not None or not d.can_see_dark:
             return
-        from ..ranging import dark_returns
+        from ..ranging import dark_share
 
         xr, _ = self.split(x)
         R, T = _poses(*_rig(xr, self.base), self.t)
         bR, bT = _boards(xr, self.base)
-        u, sp = self.scan_u, self.scan.spread  # per (position, board) -> per return
-        pos = np.repeat(np.arange(len(R)), 2)
-        dirs = sp(R[pos, :, 0]) * u[:, :1] + sp(R[pos, :, 1]) * u[:, 1:]
-        origin = sp(T[pos])
-        dark = np.zeros(len(u))
+        # per group (position i, board b): a return along u = (u_x, u_y) in the LiDAR plane
+        # leaves T_i along D u (D = [R_x R_y]) and cuts the board's plane (eq. 3) at
+        # t = e / (a . u), a = D^T n_b, e = n_b . (T_b - T_i); in board coordinates (the board
+        # frame's x, y) the hit is c + t (A u), A = R_b[:, :2]^T D, c = R_b[:, :2]^T (T_i - T_b)
+        brd = np.tile([0, 1], len(R))
+        Rg, Tg = np.repeat(R, 2, axis=0), np.repeat(T, 2, axis=0)
+        D, Bxy, n = Rg[:, :, :2], bR[brd][:, :, :2], bR[brd][:, :, 2]
+        a = np.einsum("gk,gkj->gj", n, D)  # (G, 2)
+        e = np.einsum("gk,gk->g", n, bT[brd] - Tg)
+        A = np.einsum("gki,gkj->gij", Bxy, D)  # (G, 2, 2)
+        c = np.einsum("gki,gk->gi", Bxy, Tg - bT[brd])  # (G, 2)
+        sp, ux, uy = self.scan.spread, self.scan_u[:, 0], self.scan_u[:, 1]
+        den = sp(a[:, 0]) * ux + sp(a[:, 1]) * uy
+        ok = np.abs(den) > 1e-12
+        t = sp(e) / np.where(ok, den, 1.0)
+        bx = sp(c[:, 0]) + t * (sp(A[:, 0, 0]) * ux + sp(A[:, 0, 1]) * uy)
+        by = sp(c[:, 1]) + t * (sp(A[:, 1, 0]) * ux + sp(A[:, 1, 1]) * uy)
+        dark = np.zeros(len(ux))
         for b in range(2):
-            m = d.scan_board == b
-            dark[m] = dark_returns(origin[m], dirs[m], bR[b], bT[b], d.board_spec,
-                                   d.black_parity[b])
+            m = (d.scan_board == b) & ok
+            dark[m] = dark_share(bx[m], by[m], d.board_spec, d.black_parity[b])
         self.dark = dark
 
     def prior_residuals(self, x: np.ndarray) -> np.ndarray:
@@ -112,9 +125,14 @@ class _Problem:
         Gaussian-noise optimum (for Gaussian data nothing is cut: P(|z| > 5) ~ 6e-7)."""
         rs, rp, _ = self.blocks(x, corners=False)
         for grp, r in ((self.scan, rs), (self.stripe, rp)):
-            grp.set_mask(np.ones(len(r), bool))
+            keep = np.ones(len(r), bool)
+            grp.set_mask(keep)
             for _ in range(2):  # the kept set changes the group moments: settle it
-                grp.set_mask(np.abs(grp.whiten(r)) <= REJECT_SIGMAS)
+                new = np.abs(grp.whiten(r)) <= REJECT_SIGMAS
+                if np.array_equal(new, keep):  # settled: another pass would repeat this one
+                    break
+                keep = new
+                grp.set_mask(keep)
 
     def blocks(self, x: np.ndarray, corners: bool = True
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -358,17 +376,18 @@ class _Problem:
         zL = R[np.repeat(np.arange(len(self.t)), 2), :, 2]
         line = unit(np.cross(n, zL))  # stripe direction on the board
         u = unit(np.cross(n, line))  # in the board, perpendicular to the stripe
-        spread = self.stripe.spread  # per (position, board) -> per centre
-        Jt = ent["Jt"]
-        pu = np.einsum("mij,mj->mi", Jt, spread(u))
-        pl = np.einsum("mij,mj->mi", Jt, spread(line))  # the imaged stripe's direction
-        pl_len = np.hypot(pl[:, 0], pl[:, 1])
-        if np.any(pl_len == 0):
+        # px per mm along u: the image of u (pu = J u, J = d pixel / d P) perpendicular to
+        # the imaged stripe (pl = J line), |pu x pl| / |pl|, by the Binet-Cauchy identity from
+        # each centre's forms and per-group coefficients (:mod:`lidarcal.pixel_jacobian`)
+        coef = np.zeros((len(n), 9, 2))
+        coef[:, :3, 0] = np.cross(u, line)
+        coef[:, 3:, 1] = quadratic_form_coefficients(line)
+        cross, pl2 = _rows_dot(ent["forms"], coef, self.stripe).T
+        if np.any(pl2 <= 0):
             raise ValueError("a stripe images to a point: no stripe direction in the image")
-        # px per mm along u: pu's component perpendicular to the imaged stripe
-        perp = np.abs(pu[:, 0] * pl[:, 1] - pu[:, 1] * pl[:, 0]) / pl_len
+        perp = np.abs(cross) / np.sqrt(pl2)
         du = np.abs(np.einsum("ij,ij->i", zL, u))  # mm of laser offset per mm along u
-        self.scale_px = perp / spread(np.maximum(du, 1e-9))
+        self.scale_px = perp / self.stripe.spread(np.maximum(du, 1e-9))
         self.scale_depth = ent["P"][:, 2].copy()  # the depths it holds at (stripe_scale)
 
 
@@ -392,7 +411,8 @@ def _groups(data: JointData) -> tuple[_Groups, _Groups]:
 def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bool = False,
                    cache: bool = True) -> dict:
     """Stripe centres back-projected onto their boards (eq. 5), ``P`` (S, 3), and with
-    ``jacobian`` d pixel / d P through the lens model, ``Jt`` (S, 2, 3).
+    ``jacobian`` the forms of d pixel / d P through the lens model, ``forms`` (S, 9)
+    (:func:`lidarcal.pixel_jacobian.pixel_jacobian_forms`).
 
     Both depend on the board planes only: with the planes held (``cache``) they are
     computed once per :class:`JointData` and board poses.
@@ -407,34 +427,9 @@ def _stripe_points(data: JointData, bR: np.ndarray, bT: np.ndarray, jacobian: bo
         n = bR[:, :, 2]
         dd = np.einsum("ij,ij->i", n, bT)
         ent = per[key] = {"P": ray * (dd[b] / np.einsum("ij,ij->i", ray, n[b]))[:, None]}
-    if jacobian and "Jt" not in ent:
-        ent["Jt"] = pixel_jacobian(data.camera, ent["P"])
+    if jacobian and "forms" not in ent:
+        ent["forms"] = pixel_jacobian_forms(data.camera, ent["P"])
     return ent
-
-
-def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
-    """d pixel / d point (S, 2, 3) of camera-frame points ``P`` through the lens model.
-
-    OpenCV's five-coefficient model as ``cv2.projectPoints`` has it (no skew):
-    ``diag(fx, fy) J_d(x, y) [[1, 0, -x], [0, 1, -y]] / Z`` with ``(x, y) = (X / Z, Y / Z)``
-    and ``J_d`` the distortion's 2 x 2 Jacobian (:func:`lidarcal.camera._distort_normalised`);
-    other models: ``cv2.projectPoints``' Jacobian wrt the translation (columns 3-5, exactly
-    that with a zero rotation)."""
-    from ..camera import _distort_normalised
-
-    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float).ravel()
-    if len(dist) != 5:
-        _, Jt = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
-        return Jt[:, 3:6].reshape(-1, 2, 3)
-    iz = 1 / P[:, 2]
-    xy = P[:, :2] * iz[:, None]
-    _, (dxx, dxy, dyx, dyy) = _distort_normalised(camera, xy)  # J_d's entries, each (N,)
-    out = np.empty((len(P), 2, 3))
-    A = out[:, :, :2]  # d pixel / d (X, Y) at fixed Z: diag(fx, fy) J_d / Z
-    A[:, 0, 0], A[:, 0, 1] = K[0, 0] * dxx * iz, K[0, 0] * dxy * iz
-    A[:, 1, 0], A[:, 1, 1] = K[1, 1] * dyx * iz, K[1, 1] * dyy * iz
-    out[:, :, 2] = -(A[:, :, 0] * xy[:, :1] + A[:, :, 1] * xy[:, 1:])
-    return out
 
 
 def _rows_times(dr: np.ndarray, G: np.ndarray, p: np.ndarray) -> np.ndarray:
