@@ -22,6 +22,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from .corner_symmetry import symmetric_corners
 from .geometry import MAD_TO_SIGMA, Plane, as_points
 from .io.dataset import BoardSpec, CameraModel, DatasetError, read_image
+from .lens import distort_normalised, distortion_jacobian
 
 #: OpenCV model used by :func:`calibrate_intrinsics`: k1, k2, p1, p2 and (with enough views) k3.
 MIN_VIEWS = 3
@@ -712,25 +713,8 @@ def _calibrate(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tuple
     return cam, np.asarray(per_view, dtype=float).ravel(), tuple(rvecs), tuple(tvecs)
 
 
-def _distort_normalised(camera: CameraModel, xy: np.ndarray
-                        ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-    """OpenCV's distortion of normalised points (N, 2) and its 2 x 2 Jacobian per point, as
-    its entries ``(dxd/dx, dxd/dy, dyd/dx, dyd/dy)``, each (N,)."""
-    k1, k2, p1, p2, k3 = (float(v) for v in camera.dist)
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    drad = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d rad / d r2
-    xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    cross = 2 * drad * x * y + 2 * p1 * x + 2 * p2 * y  # dxd/dy = dyd/dx
-    J = (rad + 2 * drad * x * x + 2 * p1 * y + 6 * p2 * x, cross, cross,
-         rad + 2 * drad * y * y + 6 * p1 * y + 2 * p2 * x)
-    return np.column_stack([xd, yd]), J
-
-
 def _newton_step(J: tuple[np.ndarray, ...], r: np.ndarray) -> np.ndarray:
-    """``J^-1 r`` per point for the 2 x 2 Jacobians of :func:`_distort_normalised` (Cramer's
+    """``J^-1 r`` per point for the 2 x 2 Jacobians of :func:`lidarcal.lens.distortion_jacobian` (Cramer's
     rule), (N, 2)."""
     a, b, c, d = J
     with np.errstate(divide="ignore", invalid="ignore"):  # singular: NaN, flagged by the caller
@@ -765,14 +749,12 @@ def undistort_pixels(camera: CameraModel, px: np.ndarray) -> np.ndarray:
     target = np.column_stack([(p[:, 0] - cx - skew * yn) / fx, yn])  # distorted, normalised
     xy = np.where(np.isfinite(xy), xy, target)
     for _ in range(8):
-        d, J = _distort_normalised(camera, xy)
-        r = d - target
+        r = distort_normalised(dist, xy) - target
         if np.max(np.abs(r)) < 1e-15:
             break
-        xy = xy - _newton_step(J, r)
+        xy = xy - _newton_step(distortion_jacobian(dist, xy), r)
     else:
-        d, _ = _distort_normalised(camera, xy)
-    r = d - target
+        r = distort_normalised(dist, xy) - target
     bad = np.hypot(r[:, 0], r[:, 1]) * max(fx, fy) > 1e-6
     xy[bad] = np.nan
     return xy

@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .camera import _distort_normalised
+from .lens import distortion_jacobian
 
 
 def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
@@ -17,7 +17,7 @@ def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
 
     OpenCV's five-coefficient model as ``cv2.projectPoints`` has it (no skew):
     ``diag(fx, fy) J_d(x, y) [[1, 0, -x], [0, 1, -y]] / Z`` with ``(x, y) = (X / Z, Y / Z)``
-    and ``J_d`` the distortion's 2 x 2 Jacobian (:func:`lidarcal.camera._distort_normalised`);
+    and ``J_d`` the distortion's 2 x 2 Jacobian (:func:`lidarcal.lens.distortion_jacobian`);
     other models: ``cv2.projectPoints``' Jacobian wrt the translation (columns 3-5, exactly
     that with a zero rotation)."""
     K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float).ravel()
@@ -26,7 +26,7 @@ def pixel_jacobian(camera, P: np.ndarray) -> np.ndarray:
         return Jt[:, 3:6].reshape(-1, 2, 3)
     iz = 1 / P[:, 2]
     xy = P[:, :2] * iz[:, None]
-    _, (dxx, dxy, dyx, dyy) = _distort_normalised(camera, xy)  # J_d's entries, each (N,)
+    dxx, dxy, dyx, dyy = distortion_jacobian(dist, xy)  # J_d's entries, each (N,)
     out = np.empty((len(P), 2, 3))
     A = out[:, :, :2]  # d pixel / d (X, Y) at fixed Z: diag(fx, fy) J_d / Z
     A[:, 0, 0], A[:, 0, 1] = K[0, 0] * dxx * iz, K[0, 0] * dxy * iz
@@ -61,7 +61,7 @@ def pixel_jacobian_forms(camera, P: np.ndarray) -> np.ndarray:
         return jacobian_forms(pixel_jacobian(camera, P))
     iz = 1 / P[:, 2]
     x, y = P[:, 0] * iz, P[:, 1] * iz
-    _, (dxx, dxy, dyx, dyy) = _distort_normalised(camera, np.column_stack([x, y]))
+    dxx, dxy, dyx, dyy = distortion_jacobian(dist, np.column_stack([x, y]))
     fx2, fy2, iz2 = K[0, 0] ** 2, K[1, 1] ** 2, iz * iz
     s00 = (fx2 * dxx * dxx + fy2 * dyx * dyx) * iz2
     s01 = (fx2 * dxx * dxy + fy2 * dyx * dyy) * iz2

@@ -173,8 +173,9 @@ _IMAGES = ("data/real_tapas/00.png", "data/paper_rig/stripes/0000.png")
 
 
 def _gray(path: str) -> np.ndarray:
-    import cv2
     from pathlib import Path
+
+    import cv2
 
     img = cv2.imread(str(Path(__file__).resolve().parents[1] / path), cv2.IMREAD_GRAYSCALE)
     assert img is not None, path
@@ -229,7 +230,7 @@ def test_profile_reductions_match_the_row_wise_numpy(path) -> None:
     img = _gray(path)
     H, W = img.shape
     rng = np.random.default_rng(5)
-    row, col = np.unravel_index(np.argmax(sp._gaussian_blur(img, 1.5)), img.shape)
+    row, _ = np.unravel_index(np.argmax(sp._gaussian_blur(img, 1.5)), img.shape)
     cols = np.arange(W)
     for y0 in (np.full(W, float(row)), rng.uniform(0, H - 1, W)):
         for L in (8, 26, 30):
