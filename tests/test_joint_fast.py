@@ -209,6 +209,25 @@ def test_pixel_jacobian_forms_equal_those_of_opencvs_jacobian(seed):
     assert np.allclose(F1, F0, rtol=1e-9, atol=1e-12 * np.abs(F0).max(axis=0))
 
 
+def test_pixel_jacobian_forms_in_blocks_equal_all_at_once(monkeypatch):
+    """The forms computed block by block (:data:`lidarcal.pixel_jacobian.FORMS_BLOCK`) are the
+    numbers of one pass over all centres, bit for bit (each row on its own), with a block
+    size that leaves a short last block."""
+    from lidarcal import pixel_jacobian as pj
+    from lidarcal.io.dataset import CameraModel
+
+    rng = np.random.default_rng(4)
+    K = np.array([[1400.0, 0.0, 640.0], [0.0, 1390.0, 470.0], [0.0, 0.0, 1.0]])
+    cam = CameraModel(K, np.array([-0.2, 0.1, 4e-4, -3e-4, -0.02]), (1280, 960))
+    z = rng.uniform(300, 1500, 1000)
+    P = np.column_stack([rng.uniform(-0.5, 0.5, 1000) * z, rng.uniform(-0.4, 0.4, 1000) * z, z])
+    whole = pj.pixel_jacobian_forms(cam, P)
+    monkeypatch.setattr(pj, "FORMS_BLOCK", 97)
+    np.testing.assert_array_equal(pj.pixel_jacobian_forms(cam, P), whole)
+    np.testing.assert_allclose(whole, pj.jacobian_forms(pj.pixel_jacobian(cam, P)), rtol=1e-9,
+                               atol=1e-12 * np.abs(whole).max())
+
+
 def test_stripe_scale_equals_the_imaged_directions(noisy_problem):
     """The stripe scale from the Binet-Cauchy forms (:meth:`_Problem.set_stripe_scale`) equals
     the direct one: board direction u and stripe direction l imaged by each centre's pixel
