@@ -85,12 +85,11 @@ class JointModel:
         if not np.any(e > 0):
             return cols
         k, a = self.axis.direction, self.axis.point
-        poses = self.pose(psi)
-        poses = poses if isinstance(poses, list) else [poses]
-        dist = np.array([np.linalg.norm(np.cross(p.T - a, k)) for p in poses])
+        R, T = self.pose_arrays(psi)  # every angle at once
+        dist = np.linalg.norm(np.cross(T - a, k), axis=1)
         cols["centre_mm"] = np.hypot(cols["centre_mm"], e * dist)
         for name, col in (("z_axis_deg", 2), ("x_axis_deg", 0)):
-            sin = np.array([np.linalg.norm(np.cross(p.R[:, col], k)) for p in poses])
+            sin = np.linalg.norm(np.cross(R[:, :, col], k), axis=1)
             cols[name] = np.hypot(cols[name], np.degrees(e * sin))
         return cols
 
