@@ -109,6 +109,26 @@ def test_start_step_reproduces_the_other_start(seed):
     assert start_step(b0, flipped) is None
 
 
+def test_group_moments_in_blocks_equal_the_direct_sums(noisy_problem, monkeypatch):
+    """The group moments ``Q = sum W h~ h~^T`` computed a few groups at a time
+    (:data:`lidarcal.joint.moments.MOMENT_GROUPS`) are those of one batch bit for bit, and
+    equal the sums over each group's rows of the whitened observations."""
+    from lidarcal.joint import moments as mo
+
+    mp = mo._MomentProblem(noisy_problem)
+    rng = np.random.default_rng(5)
+    Ws, Wp = rng.uniform(0.2, 1.0, mp.hs[:, 0].size), rng.uniform(0.2, 1.0, mp.hp[:, 0].size)
+    Qs, Qp = mp.moments(Ws, Wp, grid=True)
+    monkeypatch.setattr(mo, "MOMENT_GROUPS", 5)  # several blocks, a short last one
+    Qs5, Qp5 = mp.moments(Ws, Wp, grid=True)
+    np.testing.assert_array_equal(Qs5, Qs)
+    np.testing.assert_array_equal(Qp5, Qp)
+    for h, W, Q in ((mp.hs, Ws, Qs), (mp.hp, Wp, Qp)):
+        W = W.reshape(h.shape[0], h.shape[2])
+        direct = np.array([(h[g] * W[g]) @ h[g].T for g in range(len(h))])
+        np.testing.assert_allclose(Q, direct, rtol=1e-12, atol=1e-12 * np.abs(direct).max())
+
+
 def test_angle_steps_from_moments_equal_central_differences(noisy_problem, monkeypatch):
     """Each position's angle step and its variance (the jitter test): the analytic moment
     form equals one central difference of the angles on the rows."""
