@@ -533,7 +533,8 @@ def moments_covariance(prob: _Problem, loss: str, f_scale: float
         Jr[:, N_RIG:] = np.diag(1 / prob.prior_sigma[:n_rng])
         for j in prob.frozen:
             Jr[:, N_RIG + j] = 0.0
-    Hx = (np.einsum("gki,gkl,glj->ij", Js, Qs, Js) + np.einsum("gki,gkl,glj->ij", Jp, Qp, Jp)
+    # sum_g J_g^T (Q_g J_g): two two-operand products (einsum's three-operand loop is ~20x slower)
+    Hx = (np.einsum("gki,gkj->ij", Js, Qs @ Js) + np.einsum("gki,gkj->ij", Jp, Qp @ Jp)
           + (Jr.T * Wr) @ Jr)
     # cross information with the board planes (consider term)
     Kx = (np.einsum("gki,gkj->gij", Js, _scan_plane_cross(prob, Qs))
