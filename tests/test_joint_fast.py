@@ -129,6 +129,35 @@ def test_group_moments_in_blocks_equal_the_direct_sums(noisy_problem, monkeypatc
         np.testing.assert_allclose(Q, direct, rtol=1e-12, atol=1e-12 * np.abs(direct).max())
 
 
+@pytest.mark.parametrize("step", [0.0, 1.0])
+def test_board_derivatives_equal_central_differences(noisy_problem, step):
+    """The analytic derivatives of the board planes (normal, d) and of the corners'
+    reprojections wrt the board parameters (:meth:`_Problem.plane_derivatives`,
+    :meth:`_Problem.corner_jacobian`) equal central differences of the planes and of
+    ``cv2.projectPoints``, at the held boards and at a board step."""
+    from lidarcal.joint.params import _STEPS, N_BOARD, _boards
+
+    prob = noisy_problem
+    rng = np.random.default_rng(6)
+    x = np.zeros(N_RIG + 2 * N_BOARD)
+    x[N_RIG:] = step * rng.normal(size=2 * N_BOARD) * np.tile([2e-3] * 3 + [1.0] * 3, 2)  # rad, mm
+    m = len(prob.corner_residuals(*_boards(x, prob.base)))
+    assert m > 0
+    Jc, Gb = np.zeros((m, 2 * N_BOARD)), np.zeros((2, 4, N_BOARD))
+    for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+        b, j = divmod(i - N_RIG, N_BOARD)
+        dx = np.zeros(len(x))
+        dx[i] = _STEPS[i]
+        (Rp, Tp), (Rm, Tm) = _boards(x + dx, prob.base), _boards(x - dx, prob.base)
+        Jc[:, i - N_RIG] = (prob.corner_residuals(Rp, Tp) - prob.corner_residuals(Rm, Tm)) / (2 * dx[i])
+        fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
+        fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
+        Gb[b, :, j] = (fp - fm) / (2 * dx[i])
+    # central differences: truncation ~h^2 and rounding ~1e-16 / h (h = 1e-6 rad, 1e-3 mm)
+    np.testing.assert_allclose(prob.corner_jacobian(x), Jc, rtol=0, atol=1e-6 * np.abs(Jc).max())
+    np.testing.assert_allclose(prob.plane_derivatives(x), Gb, rtol=0, atol=1e-8 * np.abs(Gb).max())
+
+
 def test_angle_steps_from_moments_equal_central_differences(noisy_problem, monkeypatch):
     """Each position's angle step and its variance (the jitter test): the analytic moment
     form equals one central difference of the angles on the rows."""
