@@ -229,12 +229,14 @@ class Pose:
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` of vectors ``v`` (..., 3): (..., 3, 3), with ``[v]x u = v x u``."""
+    """``[v]x`` of vectors ``v`` (..., 3): (..., 3, 3), with ``[v]x u = v x u`` (the six
+    off-diagonal entries placed in a zero array)."""
     v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:

@@ -129,3 +129,17 @@ def test_fit_circle_3d_recovers_truth():
     assert np.linalg.norm(circ.centre - centre) < 0.02
     assert abs(circ.radius - r) < 0.02
     assert angle_between_deg(circ.normal, n) < 0.05 or angle_between_deg(-circ.normal, n) < 0.05
+
+
+def test_skew_is_the_cross_product_matrix_of_stacked_vectors():
+    """``skew(v) @ u == v x u`` for single and stacked vectors; antisymmetric, zero diagonal."""
+    from lidarcal.geometry import skew
+
+    rng = np.random.default_rng(3)
+    for shape in ((3,), (7, 3), (2, 5, 3)):
+        v, u = rng.normal(size=shape), rng.normal(size=shape)
+        S = skew(v)
+        assert S.shape == shape[:-1] + (3, 3)
+        np.testing.assert_allclose((S @ u[..., None])[..., 0], np.cross(v, u), atol=1e-14)
+        np.testing.assert_array_equal(S, -np.swapaxes(S, -1, -2))
+        assert np.all(np.diagonal(S, axis1=-2, axis2=-1) == 0)

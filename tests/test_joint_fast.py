@@ -109,6 +109,55 @@ def test_start_step_reproduces_the_other_start(seed):
     assert start_step(b0, flipped) is None
 
 
+def test_group_moments_in_blocks_equal_the_direct_sums(noisy_problem, monkeypatch):
+    """The group moments ``Q = sum W h~ h~^T`` computed a few groups at a time
+    (:data:`lidarcal.joint.moments.MOMENT_GROUPS`) are those of one batch bit for bit, and
+    equal the sums over each group's rows of the whitened observations."""
+    from lidarcal.joint import moments as mo
+
+    mp = mo._MomentProblem(noisy_problem)
+    rng = np.random.default_rng(5)
+    Ws, Wp = rng.uniform(0.2, 1.0, mp.hs[:, 0].size), rng.uniform(0.2, 1.0, mp.hp[:, 0].size)
+    Qs, Qp = mp.moments(Ws, Wp, grid=True)
+    monkeypatch.setattr(mo, "MOMENT_GROUPS", 5)  # several blocks, a short last one
+    Qs5, Qp5 = mp.moments(Ws, Wp, grid=True)
+    np.testing.assert_array_equal(Qs5, Qs)
+    np.testing.assert_array_equal(Qp5, Qp)
+    for h, W, Q in ((mp.hs, Ws, Qs), (mp.hp, Wp, Qp)):
+        W = W.reshape(h.shape[0], h.shape[2])
+        direct = np.array([(h[g] * W[g]) @ h[g].T for g in range(len(h))])
+        np.testing.assert_allclose(Q, direct, rtol=1e-12, atol=1e-12 * np.abs(direct).max())
+
+
+@pytest.mark.parametrize("step", [0.0, 1.0])
+def test_board_derivatives_equal_central_differences(noisy_problem, step):
+    """The analytic derivatives of the board planes (normal, d) and of the corners'
+    reprojections wrt the board parameters (:meth:`_Problem.plane_derivatives`,
+    :meth:`_Problem.corner_jacobian`) equal central differences of the planes and of
+    ``cv2.projectPoints``, at the held boards and at a board step."""
+    from lidarcal.joint.params import _STEPS, N_BOARD, _boards
+
+    prob = noisy_problem
+    rng = np.random.default_rng(6)
+    x = np.zeros(N_RIG + 2 * N_BOARD)
+    x[N_RIG:] = step * rng.normal(size=2 * N_BOARD) * np.tile([2e-3] * 3 + [1.0] * 3, 2)  # rad, mm
+    m = len(prob.corner_residuals(*_boards(x, prob.base)))
+    assert m > 0
+    Jc, Gb = np.zeros((m, 2 * N_BOARD)), np.zeros((2, 4, N_BOARD))
+    for i in range(N_RIG, N_RIG + 2 * N_BOARD):
+        b, j = divmod(i - N_RIG, N_BOARD)
+        dx = np.zeros(len(x))
+        dx[i] = _STEPS[i]
+        (Rp, Tp), (Rm, Tm) = _boards(x + dx, prob.base), _boards(x - dx, prob.base)
+        Jc[:, i - N_RIG] = (prob.corner_residuals(Rp, Tp) - prob.corner_residuals(Rm, Tm)) / (2 * dx[i])
+        fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
+        fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
+        Gb[b, :, j] = (fp - fm) / (2 * dx[i])
+    # central differences: truncation ~h^2 and rounding ~1e-16 / h (h = 1e-6 rad, 1e-3 mm)
+    np.testing.assert_allclose(prob.corner_jacobian(x), Jc, rtol=0, atol=1e-6 * np.abs(Jc).max())
+    np.testing.assert_allclose(prob.plane_derivatives(x), Gb, rtol=0, atol=1e-8 * np.abs(Gb).max())
+
+
 def test_angle_steps_from_moments_equal_central_differences(noisy_problem, monkeypatch):
     """Each position's angle step and its variance (the jitter test): the analytic moment
     form equals one central difference of the angles on the rows."""
@@ -207,6 +256,25 @@ def test_pixel_jacobian_forms_equal_those_of_opencvs_jacobian(seed):
     F0 = jacobian_forms(J[:, 3:6].reshape(-1, 2, 3))
     F1 = pixel_jacobian_forms(CameraModel(K, dist, (1280, 960)), P)
     assert np.allclose(F1, F0, rtol=1e-9, atol=1e-12 * np.abs(F0).max(axis=0))
+
+
+def test_pixel_jacobian_forms_in_blocks_equal_all_at_once(monkeypatch):
+    """The forms computed block by block (:data:`lidarcal.pixel_jacobian.FORMS_BLOCK`) are the
+    numbers of one pass over all centres, bit for bit (each row on its own), with a block
+    size that leaves a short last block."""
+    from lidarcal import pixel_jacobian as pj
+    from lidarcal.io.dataset import CameraModel
+
+    rng = np.random.default_rng(4)
+    K = np.array([[1400.0, 0.0, 640.0], [0.0, 1390.0, 470.0], [0.0, 0.0, 1.0]])
+    cam = CameraModel(K, np.array([-0.2, 0.1, 4e-4, -3e-4, -0.02]), (1280, 960))
+    z = rng.uniform(300, 1500, 1000)
+    P = np.column_stack([rng.uniform(-0.5, 0.5, 1000) * z, rng.uniform(-0.4, 0.4, 1000) * z, z])
+    whole = pj.pixel_jacobian_forms(cam, P)
+    monkeypatch.setattr(pj, "FORMS_BLOCK", 97)
+    np.testing.assert_array_equal(pj.pixel_jacobian_forms(cam, P), whole)
+    np.testing.assert_allclose(whole, pj.jacobian_forms(pj.pixel_jacobian(cam, P)), rtol=1e-9,
+                               atol=1e-12 * np.abs(whole).max())
 
 
 def test_stripe_scale_equals_the_imaged_directions(noisy_problem):

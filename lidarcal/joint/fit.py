@@ -397,12 +397,10 @@ def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None =
 def scan_coverage(data: JointData, model) -> np.ndarray:
     """Per position and board (N, 2): the span of the kept scan returns along the board's
     laser line over the span of its stripe centres (1: the scan covers what the camera sees
-    of the line; NaN: too few points). Returns in the camera frame by ``model.pose``."""
+    of the line; NaN: too few points). Returns in the camera frame by ``model.pose_arrays``."""
     n_pos = data.n_positions
-    poses = model.pose(np.asarray(data.psi_deg, float))
-    poses = poses if isinstance(poses, list) else [poses]
-    R = np.array([p.R for p in poses]).reshape(n_pos, 3, 3)
-    T = np.array([p.T for p in poses]).reshape(n_pos, 3)
+    R, T = model.pose_arrays(np.asarray(data.psi_deg, float))
+    R, T = R.reshape(n_pos, 3, 3), T.reshape(n_pos, 3)
     nb = data.board_R[:, :, 2]
     line = np.cross(np.tile(nb, (n_pos, 1)), np.repeat(R[:, :, 2], 2, axis=0))  # group 2 i + b
     line /= np.maximum(np.linalg.norm(line, axis=1), 1e-12)[:, None]

@@ -6,12 +6,11 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..geometry import Pose
 from ..ranging import RangingModel
 from ..turntable import RIGID_FORMULA, Axis, RigidModel
-from .params import _STEPS, N_RIG, _Base, _poses, _rig
+from .params import N_RIG, _Base, _rig
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -86,12 +85,11 @@ class JointModel:
         if not np.any(e > 0):
             return cols
         k, a = self.axis.direction, self.axis.point
-        poses = self.pose(psi)
-        poses = poses if isinstance(poses, list) else [poses]
-        dist = np.array([np.linalg.norm(np.cross(p.T - a, k)) for p in poses])
+        R, T = self.pose_arrays(psi)  # every angle at once
+        dist = np.linalg.norm(np.cross(T - a, k), axis=1)
         cols["centre_mm"] = np.hypot(cols["centre_mm"], e * dist)
         for name, col in (("z_axis_deg", 2), ("x_axis_deg", 0)):
-            sin = np.array([np.linalg.norm(np.cross(p.R[:, col], k)) for p in poses])
+            sin = np.linalg.norm(np.cross(R[:, :, col], k), axis=1)
             cols[name] = np.hypot(cols[name], np.degrees(e * sin))
         return cols
 
@@ -163,20 +161,18 @@ class JointModel:
 
 def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray
                  ) -> dict[str, np.ndarray]:
-    """Propagate ``cov`` (10, 10) to centre, z, x sigmas at angles ``t`` (finite differences)."""
-    x0 = np.zeros(N_RIG)
-    R0, _ = _poses(*_rig(x0, base), t)
-    h = _STEPS[:N_RIG]
-    GT = np.zeros((len(t), 3, N_RIG))
-    Gw = np.zeros((len(t), 3, N_RIG))
-    for j in range(N_RIG):
-        dx = np.zeros(N_RIG)
-        dx[j] = h[j]
-        Rp, Tp = _poses(*_rig(dx, base), t)
-        Rm, Tm = _poses(*_rig(-dx, base), t)
-        GT[:, :, j] = (Tp - Tm) / (2 * h[j])
-        Gw[:, :, j] = (Rotation.from_matrix(Rp @ np.transpose(R0, (0, 2, 1))).as_rotvec()
-                       - Rotation.from_matrix(Rm @ np.transpose(R0, (0, 2, 1))).as_rotvec()) / (2 * h[j])
+    """Propagate ``cov`` (10, 10) to centre, z, x sigmas at angles ``t`` (first order, with the
+    rigid model's analytic derivatives :func:`lidarcal.joint.problem.pose_jacobian`).
+
+    The rotation error is the left rotation vector ``w`` of ``R R0^T``: at the solution
+    ``dR = [dw]x R0``, so ``dw = 1/2 sum_c R0_c x dR_c`` over the columns ``c`` (the
+    antisymmetric part of ``dR R0^T``)."""
+    from .problem import pose_jacobian
+
+    R0, _, G = pose_jacobian(np.zeros(N_RIG), base, t)  # G rows [R_x, R_y, R_z, T]
+    GT = G[:, 9:12]
+    Gw = 0.5 * sum(np.cross(R0[:, :, c][:, :, None], G[:, 3 * c:3 * c + 3], axis=1)
+                   for c in range(3))
     C = np.where(np.isfinite(cov), cov, 0.0)
     cT = GT @ C @ GT.transpose(0, 2, 1)
     cw = Gw @ C @ Gw.transpose(0, 2, 1)
@@ -188,13 +184,7 @@ def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray
     Ck = C[:2, :2]
     rows["axis_direction_deg"] = np.full(len(t), np.degrees(np.sqrt(max(np.trace(Ck), 0.0))))
     # axis line near the LiDAR: foot of the reference centre on the axis, perpendicular part
-    Gf = np.zeros((3, N_RIG))
-    for j in range(N_RIG):
-        dx = np.zeros(N_RIG)
-        dx[j] = h[j]
-        fp = _foot(_rig(dx, base), base.T)
-        fm = _foot(_rig(-dx, base), base.T)
-        Gf[:, j] = (fp - fm) / (2 * h[j])
+    Gf = _foot_jacobian(base, base.T)
     Pk = np.eye(3) - np.outer(base.k, base.k)
     cf = Pk @ Gf @ C @ Gf.T @ Pk
     rows["axis_point_mm"] = np.full(len(t), np.sqrt(max(np.trace(cf), 0.0)))
@@ -215,6 +205,14 @@ def _pose_sigmas(base: _Base, cov: np.ndarray, t: np.ndarray, null: np.ndarray
     return out
 
 
-def _foot(rig: tuple, p: np.ndarray) -> np.ndarray:
-    k, a, _, _ = rig
-    return a + k * ((p - a) @ k)
+def _foot_jacobian(base: _Base, p: np.ndarray) -> np.ndarray:
+    """d foot / d rig (3, 10) at the solution: the foot ``f = a + k ((p - a) . k)`` of ``p`` on
+    the axis moves with the direction steps (``dk``, :func:`lidarcal.joint.problem.pose_jacobian`)
+    and the point steps (``da = B_i``)."""
+    k, a, _, _ = _rig(np.zeros(N_RIG), base)
+    dk = (base.B - np.outer(base.B @ k, k)) / np.linalg.norm(base.k)  # (2, 3)
+    q = p - a
+    Gf = np.zeros((3, N_RIG))
+    Gf[:, 0:2] = (dk * float(q @ k) + np.outer(dk @ q, k)).T
+    Gf[:, 2:4] = (base.B - np.outer(base.B @ k, k)).T
+    return Gf

@@ -259,37 +259,45 @@ class _Problem:
         return np.vstack(blocks)
 
     def plane_derivatives(self, x: np.ndarray) -> np.ndarray:
-        """d (normal, d) of both boards / d board parameters ``x[10:22]`` (2, 4, 6), central
-        differences."""
+        """d (normal, d) of both boards / d board parameters ``x[10:22]`` (2, 4, 6), analytic:
+        with ``R = Exp(w) R0`` (:func:`lidarcal.joint.params._boards`) the normal ``n = R e_z``
+        turns as ``dn/dw = -[n]x J_l(w)`` (SO(3)'s left Jacobian,
+        :func:`lidarcal.geometry.so3_left_jacobian`) and ``d = n . T`` (eq. 3) gives
+        ``dd/dw = T^T dn/dw``, ``dd/dT = n``."""
         x = np.asarray(x[:N_RIG + 2 * N_BOARD], float)
+        bR, bT = _boards(x, self.base)
         Gb = np.zeros((2, 4, N_BOARD))
-        for j in range(N_BOARD):
-            for b in range(2):
-                dx = np.zeros(len(x))
-                i = N_RIG + b * N_BOARD + j
-                dx[i] = _STEPS[i]
-                Rp, Tp = _boards(x + dx, self.base)
-                Rm, Tm = _boards(x - dx, self.base)
-                fp = np.append(Rp[b][:, 2], Rp[b][:, 2] @ Tp[b])
-                fm = np.append(Rm[b][:, 2], Rm[b][:, 2] @ Tm[b])
-                Gb[b, :, j] = (fp - fm) / (2 * _STEPS[i])
+        for b in range(2):
+            w = x[N_RIG + b * N_BOARD:N_RIG + b * N_BOARD + 3] if len(x) > N_RIG else np.zeros(3)
+            dn = -skew(bR[b][:, 2]) @ so3_left_jacobian(w)
+            Gb[b, :3, :3] = dn
+            Gb[b, 3, :3] = bT[b] @ dn
+            Gb[b, 3, 3:] = bR[b][:, 2]
         return Gb
 
     def corner_jacobian(self, x: np.ndarray) -> np.ndarray:
         """Corner reprojection residuals (px) / d board parameters ``x[10:22]`` (m, 12),
-        central differences."""
+        analytic: ``cv2.projectPoints``' Jacobian wrt its translation is d pixel / d X of the
+        corner ``X = R p + T`` (eq. 1), so d pixel / d T is that and, with ``R = Exp(w) R0``,
+        ``dX/dw = -[R p]x J_l(w)`` (SO(3)'s left Jacobian)."""
+        d = self.data
         x = np.asarray(x[:N_RIG + 2 * N_BOARD], float)
-        m = len(self.corner_residuals(*_boards(x, self.base)))
-        Jc = np.zeros((m, 2 * N_BOARD))
-        for i in range(N_RIG, N_RIG + 2 * N_BOARD):
-            b = (i - N_RIG) // N_BOARD  # a board's parameters move its own corners only
-            rows = slice(b * m // 2, (b + 1) * m // 2)
-            dx = np.zeros(len(x))
-            dx[i] = _STEPS[i]
-            Jc[rows, i - N_RIG] = (self.corner_residuals(*_boards(x + dx, self.base), (b,))
-                                   - self.corner_residuals(*_boards(x - dx, self.base), (b,))
-                                   ) / (2 * _STEPS[i])
-        return Jc
+        bR, bT = _boards(x, self.base)
+        if d.corners_px is None or d.object_points is None:
+            return np.zeros((0, 2 * N_BOARD))
+        K, dist = np.asarray(d.camera.K, float), np.asarray(d.camera.dist, float)
+        p = d.object_points.reshape(-1, 3)
+        out = []
+        for b in range(2):
+            w = x[N_RIG + b * N_BOARD:N_RIG + b * N_BOARD + 3] if len(x) > N_RIG else np.zeros(3)
+            _, J = cv2.projectPoints(p.reshape(-1, 1, 3), cv2.Rodrigues(bR[b])[0], bT[b], K, dist)
+            Jt = J[:, 3:6].reshape(-1, 2, 3)  # d pixel / d X, per corner
+            dXdw = -skew(p @ bR[b].T) @ so3_left_jacobian(w)  # (m, 3, 3)
+            blk = np.zeros((len(p), 2, 2 * N_BOARD))
+            blk[:, :, b * N_BOARD:b * N_BOARD + 3] = Jt @ dXdw
+            blk[:, :, b * N_BOARD + 3:(b + 1) * N_BOARD] = Jt
+            out.append(blk.reshape(-1, 2 * N_BOARD))
+        return np.concatenate(out)
 
     def corner_residuals(self, bR: np.ndarray, bT: np.ndarray, boards: tuple[int, ...] = (0, 1)
                          ) -> np.ndarray:
