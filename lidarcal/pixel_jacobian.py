@@ -68,11 +68,11 @@ def pixel_jacobian_forms(camera, P: np.ndarray) -> np.ndarray:
         return jacobian_forms(pixel_jacobian(camera, P))
     out = np.empty((len(P), 9))
     for i in range(0, len(P), FORMS_BLOCK):
-        _forms_block(K, camera, P[i:i + FORMS_BLOCK], out[i:i + FORMS_BLOCK])
+        _forms_block(K, dist, P[i:i + FORMS_BLOCK], out[i:i + FORMS_BLOCK])
     return out
 
 
-def _forms_block(K: np.ndarray, camera, P: np.ndarray, out: np.ndarray) -> None:
+def _forms_block(K: np.ndarray, dist: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
     """:func:`pixel_jacobian_forms` of the centres ``P`` (n, 3) into ``out`` (n, 9)."""
     iz = 1 / P[:, 2]
     x, y = P[:, 0] * iz, P[:, 1] * iz
