@@ -186,19 +186,21 @@ def _halved(img: np.ndarray) -> np.ndarray:
 def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 1.0
                  ) -> tuple[np.ndarray, np.ndarray] | None:
     """PCA line of the pixels of a smoothed image ``sm`` well above its background, in
-    full-resolution pixels (``sm`` is the image reduced by ``scale``)."""
+    full-resolution pixels (``sm`` is the image reduced by ``scale``).
+
+    Above the background: brighter than ``base + max(0.35 (peak - base), 6 noise)``, with
+    ``base`` the median and ``peak`` the 99.9th percentile of the masked pixels (a uint8
+    image: both from one histogram of them; a float one: the median of every 7th)."""
     if sm.dtype == np.uint8 and sm.flags.c_contiguous:
-        # the masked pixels' histogram, and every 7th of them (flat indices kept per mask)
-        hist = _masked_hist(sm, mask)
+        hist = _masked_hist(sm, mask)  # the masked pixels' histogram
         if hist.sum() < 20:
             return None
-        every7 = _derived(mask, "every7", lambda: np.flatnonzero(mask)[::7])
-        base = _int_percentile(sm.ravel()[every7], 50.0)
+        base = _hist_percentile(hist, 50.0)
         peak = _hist_percentile(hist, 99.9)
     elif (vals := sm[mask]).size < 20:
         return None
     elif sm.dtype == np.uint8:
-        base = _int_percentile(vals[::7], 50.0)
+        base = _int_percentile(vals, 50.0)
         peak = _int_percentile(vals, 99.9)
     else:
         base = np.median(vals[::7])
