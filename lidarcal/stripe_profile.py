@@ -482,18 +482,22 @@ def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
     left, right = med[:m], med[m:2 * m]
     xl, xr = (third - 1) / 2.0, n - 1 - (third - 1) / 2.0
     u = (np.arange(n)[None, :] - xl) / (xr - xl)
-    bg = left[:, None] + (right - left)[:, None] * u
     if bprof is None:
-        return bg
+        return left[:, None] + (right - left)[:, None] * u
     if len(med) > 2 * m:
         bl, br = med[2 * m:3 * m], med[3 * m:]
     else:
         bl, br = _row_median(bprof[:, :third]), _row_median(bprof[:, -third:])
     db = br - bl
-    step = np.flatnonzero(np.abs(db) > 0.3)
-    if step.size:
-        slope = (right[step] - left[step]) / db[step]
-        bg[step] = left[step, None] + slope[:, None] * (bprof[step] - bl[step, None])
+    is_step = np.abs(db) > 0.3
+    if not is_step.any():
+        return left[:, None] + (right - left)[:, None] * u
+    # each row by its own model (most rows of a stripe across the squares are steps)
+    bg = np.empty((m, n), np.result_type(left, u))
+    flat, step = np.flatnonzero(~is_step), np.flatnonzero(is_step)
+    bg[flat] = left[flat, None] + (right[flat] - left[flat])[:, None] * u
+    slope = (right[step] - left[step]) / db[step]
+    bg[step] = left[step, None] + slope[:, None] * (bprof[step] - bl[step, None])
     return bg
 
 
