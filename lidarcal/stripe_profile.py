@@ -261,42 +261,7 @@ def _window_centroid(prof: np.ndarray, start: np.ndarray, half: float, iters: in
     ``[j - 1/2, j + 1/2]`` with the window (fractional at the edges: the centroid is
     continuous in c), so both window sums are differences of running sums of the
     profile, O(1) per profile and step (``half >= 1/2``).
-
-    The running sums are taken over the samples within ``ceil(half) + 3`` of ``start``
-    only (:data:`_CENTROID_REACH`: the centres move by a fraction of a pixel from the
-    smoothed peak they start at); a profile whose window leaves that stretch is done
-    again over its whole length. The same centres to rounding (tests/test_stripe_kernels.py).
     """
-    n_rows, n = prof.shape
-    reach = int(np.ceil(half)) + _CENTROID_REACH
-    w = 2 * reach + 1
-    if w >= n or n_rows == 0:
-        c, mass, _ = _centroid_iterations(prof, start, half, iters, tol)
-        return c, mass
-    lo = np.clip(start.astype(np.intp) - reach, 0, n - w)
-    s0, s1 = prof.strides
-    win = np.lib.stride_tricks.as_strided(prof, (n_rows, n - w + 1, w), (s0, s1, s1),
-                                          writeable=False)
-    sub = win[np.arange(n_rows), lo]  # (M, w): samples lo .. lo + w - 1 of each profile
-    c, mass, left = _centroid_iterations(sub, start - lo, half, iters, tol,
-                                         open_lo=lo > 0, open_hi=lo < n - w)
-    c += lo
-    if left.any():  # windows that left the stretch: the whole profile
-        rows = np.flatnonzero(left)
-        c[rows], mass[rows], _ = _centroid_iterations(prof[rows], start[rows], half, iters, tol)
-    return c, mass
-
-
-#: Samples beyond ``ceil(half)`` each side of the start that :func:`_window_centroid` sums.
-_CENTROID_REACH = 3
-
-
-def _centroid_iterations(prof: np.ndarray, start: np.ndarray, half: float, iters: int,
-                         tol: float, open_lo: np.ndarray | None = None,
-                         open_hi: np.ndarray | None = None):
-    """The iterations of :func:`_window_centroid` on profiles (M, W): centres, masses, and
-    per profile whether a window reached past sample 0 where ``open_lo`` or past the last
-    sample where ``open_hi`` (the profile continues there: its centre is not valid)."""
     n_rows, n = prof.shape
     s = np.maximum(prof, 0, dtype=np.float64)  # clipped at 0, in float64
     # running sums along each profile from integral images (row r + 1 minus row r)
@@ -306,7 +271,6 @@ def _centroid_iterations(prof: np.ndarray, start: np.ndarray, half: float, iters
     sf = np.concatenate([s, np.zeros((n_rows, 1))], axis=1).ravel()
     c = start.astype(float).copy()
     mass = np.zeros(n_rows)
-    left = np.zeros(n_rows, bool)
     act = np.arange(n_rows)  # rows still moving; converged rows are left alone
     base = act * (n + 1)
     edges = np.array([[half + 0.5], [0.5 - half]])  # window ends, + 1/2: cells from -1/2
@@ -314,10 +278,7 @@ def _centroid_iterations(prof: np.ndarray, start: np.ndarray, half: float, iters
         for _ in range(iters):
             ca = c[act]
             # integrals of s and of j s from -1/2 up to both window ends (clipped)
-            x = ca + edges
-            if open_lo is not None:
-                left[act] |= ((x[1] < 0.0) & open_lo[act]) | ((x[0] > n) & open_hi[act])
-            x = np.clip(x, 0.0, n)
+            x = np.clip(ca + edges, 0.0, n)
             k = x.astype(np.intp)  # floor (x >= 0)
             i = k + base[act]
             sk = sf[i] * (x - k)
@@ -330,7 +291,7 @@ def _centroid_iterations(prof: np.ndarray, start: np.ndarray, half: float, iters
             act = act[moving]
             if act.size == 0:
                 break
-    return c, mass, left
+    return c, mass
 
 
 def _profiles(img: np.ndarray, xs: np.ndarray, y0: np.ndarray, L: int) -> tuple[np.ndarray,

@@ -273,35 +273,3 @@ def test_background_rows_by_their_own_model(seed) -> None:
                   .astype(np.float32)):
         got, ref = sp._background(prof, bprof), _background_reference(prof, bprof)
         assert got.dtype == ref.dtype and np.array_equal(got, ref)
-
-
-@pytest.mark.parametrize("seed", range(3))
-def test_window_centroid_on_a_stretch_is_the_whole_profiles(seed, monkeypatch) -> None:
-    """The centroid summed over the stretch about the start (windows that leave it done
-    again over the whole profile) against the sums over every sample: the same centres
-    and masses to 1e-9 px and 1e-9 relative (the rounding of running sums over all the
-    profiles before: cv2.integral), with starts near the peak (the stretch holds) and up
-    to 6 px off (windows leave it); saturated flat tops and profiles near both ends."""
-    rng = np.random.default_rng(10 + seed)
-    n_rows, n = 400, 53
-    j = np.arange(n)
-    centre = rng.uniform(1, n - 2, n_rows)
-    prof = 180 * np.exp(-0.5 * ((j - centre[:, None]) / rng.uniform(1.5, 3)) ** 2)
-    prof = np.minimum(prof + rng.normal(0, 3, prof.shape), 120.0)  # flat tops
-    start = np.clip(np.round(centre + rng.choice([0, 0, 1, 6], n_rows)
-                             * rng.normal(0, 1, n_rows)), 0, n - 1)
-    half = float(rng.uniform(2.5, 7.5))
-    calls = []
-    iterate = sp._centroid_iterations
-
-    def spy(p, *a, **k):
-        calls.append(len(p))
-        return iterate(p, *a, **k)
-
-    monkeypatch.setattr(sp, "_centroid_iterations", spy)
-    got, mass = sp._window_centroid(prof, start, half)
-    assert len(calls) == 2 and 0 < calls[1] < n_rows  # some windows left their stretch
-    ref, ref_mass, _ = iterate(prof, start, half, 6, 1e-4)
-    assert np.array_equal(np.isnan(got), np.isnan(ref))
-    assert np.nanmax(np.abs(got - ref)) < 1e-9
-    assert np.nanmax(np.abs(mass - ref_mass) / np.maximum(ref_mass, 1.0)) < 1e-9
