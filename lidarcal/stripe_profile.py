@@ -137,16 +137,19 @@ def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
     in 8 bits on the image halved (``INTER_AREA``) first, and at full
     resolution only when that finds no line: the line only guides the
     column windows of :func:`_centres_by_column`, which re-centre on the stripe.
-    (Halved again, a lit chessboard without a laser can pass for a stripe.)
+    (Halved again, a lit chessboard without a laser can pass for a stripe.) The halved
+    image is made of the mask's bounding box only (:func:`_even_box`: the same pixels).
     """
     if raw8 is not None and min(raw8.shape) >= 64:
-        small = _halved(raw8)
+        y0, y1, x0, x1 = _derived(mask, "box", lambda: _even_box(mask))
+        m8 = mask[y0:y1, x0:x1]
+        small = _halved(raw8[y0:y1, x0:x1])
         h, w = small.shape
-        msmall = _derived(mask, "halved", lambda: mask[:2 * h:2, :2 * w:2]
-                          & mask[1:2 * h:2, 1:2 * w:2])
+        msmall = _derived(m8, "halved", lambda: m8[:2 * h:2, :2 * w:2]
+                          & m8[1:2 * h:2, 1:2 * w:2])
         found = _bright_line(_coarse_blur(small), msmall, noise, scale=2.0)
         if found is not None:
-            return found
+            return found[0] + np.array([x0, y0], float), found[1]
     if raw8 is not None:
         return _bright_line(_gaussian_blur(raw8, 1.5), mask, noise)
     return _bright_line(_gaussian_blur(img, 1.5), mask, noise)
@@ -174,6 +177,19 @@ def _coarse_blur(small: np.ndarray) -> np.ndarray:
     stripe (tests/test_stripe_coarse.py: the coarse line moves by at most a few tenths of a
     px, against the 5 x 5 blur)."""
     return cv2.GaussianBlur(small, (3, 3), 0.75)
+
+
+def _even_box(mask: np.ndarray, margin: int = 6) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)``: the bounding box of ``mask`` plus ``margin`` px, clipped to it,
+    starting at even rows and columns: its halved image (:func:`_halved`) holds the very
+    2 x 2 blocks of the whole one's, and their 3 x 3 blur (:func:`_coarse_blur`) is the same
+    wherever the halved mask is (its border lies ``margin / 2`` halved px beyond it)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return 0, mask.shape[0], 0, mask.shape[1]
+    y0, x0 = max(rows[0] - margin, 0) // 2 * 2, max(cols[0] - margin, 0) // 2 * 2
+    return (int(y0), int(min(rows[-1] + 1 + margin, mask.shape[0])),
+            int(x0), int(min(cols[-1] + 1 + margin, mask.shape[1])))
 
 
 def _halved(img: np.ndarray) -> np.ndarray:

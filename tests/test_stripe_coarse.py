@@ -128,3 +128,23 @@ def test_background_level_from_the_whole_histogram(paper_crops) -> None:
         every7 = sp._int_percentile(sm[ms][::7], 50.0)
         assert whole == float(np.median(sm[ms]))
         assert abs(whole - every7) <= 1.0
+
+
+def test_coarse_line_from_the_mask_box_is_the_whole_crops(paper_crops) -> None:
+    """The coarse line from the halved mask box (:func:`_even_box`) and from the halved whole
+    crop (as before): the same hot pixels, so the same line to rounding (1e-9 px), on the
+    paper rig's crops and on masks cut at odd rows and columns and at the crop's edges."""
+    _, crops = paper_crops
+    cases = [(sub, msub) for sub, msub, _, _ in crops]
+    sub, msub = cases[0]
+    cut = np.zeros(msub.shape, bool)
+    cut[3:, 7:-5] = msub[3:, 7:-5]  # odd first row and column
+    cut[-9:, 201:260] = True  # the mask at the crop's bottom edge, odd rows and columns
+    cases.append((sub, cut))
+    for sub, msub in cases:
+        noise = sp._noise_sigma(sub, msub, sub)
+        box = sp._coarse_line(sub, np.array(msub), noise, sub)  # writeable: not cached
+        whole = _coarse(sub, np.array(msub), sp._coarse_blur)
+        assert box is not None and whole is not None
+        assert np.abs(box[0] - whole[0]).max() < 1e-9
+        assert np.abs(box[1] - whole[1]).max() < 1e-12
