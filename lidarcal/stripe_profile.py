@@ -137,16 +137,19 @@ def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
     in 8 bits on the image halved (``INTER_AREA``) first, and at full
     resolution only when that finds no line: the line only guides the
     column windows of :func:`_centres_by_column`, which re-centre on the stripe.
-    (Halved again, a lit chessboard without a laser can pass for a stripe.)
+    (Halved again, a lit chessboard without a laser can pass for a stripe.) The halved
+    image is made of the mask's bounding box only (:func:`_even_box`: the same pixels).
     """
     if raw8 is not None and min(raw8.shape) >= 64:
-        small = _halved(raw8)
+        y0, y1, x0, x1 = _derived(mask, "box", lambda: _even_box(mask))
+        m8 = mask[y0:y1, x0:x1]
+        small = _halved(raw8[y0:y1, x0:x1])
         h, w = small.shape
-        msmall = _derived(mask, "halved", lambda: mask[:2 * h:2, :2 * w:2]
-                          & mask[1:2 * h:2, 1:2 * w:2])
-        found = _bright_line(_gaussian_blur(small, 0.75), msmall, noise, scale=2.0)
+        msmall = _derived(m8, "halved", lambda: m8[:2 * h:2, :2 * w:2]
+                          & m8[1:2 * h:2, 1:2 * w:2])
+        found = _bright_line(_coarse_blur(small), msmall, noise, scale=2.0)
         if found is not None:
-            return found
+            return found[0] + np.array([x0, y0], float), found[1]
     if raw8 is not None:
         return _bright_line(_gaussian_blur(raw8, 1.5), mask, noise)
     return _bright_line(_gaussian_blur(img, 1.5), mask, noise)
@@ -166,6 +169,29 @@ def _gaussian_blur(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(img, (k, k), sigma)
 
 
+def _coarse_blur(small: np.ndarray) -> np.ndarray:
+    """Smoothing of the halved uint8 image for :func:`_bright_line`: a Gaussian of sigma
+    0.75 px truncated to 3 x 3 taps (its outer taps of the 5 x 5 kernel hold 3 % of the
+    weight; a quarter of the 5 x 5 blur's cost). The pixels it finds above the threshold
+    only guide the column windows of :func:`_centres_by_column`, which re-centre on the
+    stripe (tests/test_stripe_coarse.py: the coarse line moves by at most a few tenths of a
+    px, against the 5 x 5 blur)."""
+    return cv2.GaussianBlur(small, (3, 3), 0.75)
+
+
+def _even_box(mask: np.ndarray, margin: int = 6) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)``: the bounding box of ``mask`` plus ``margin`` px, clipped to it,
+    starting at even rows and columns: its halved image (:func:`_halved`) holds the very
+    2 x 2 blocks of the whole one's, and their 3 x 3 blur (:func:`_coarse_blur`) is the same
+    wherever the halved mask is (its border lies ``margin / 2`` halved px beyond it)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return 0, mask.shape[0], 0, mask.shape[1]
+    y0, x0 = max(rows[0] - margin, 0) // 2 * 2, max(cols[0] - margin, 0) // 2 * 2
+    return (int(y0), int(min(rows[-1] + 1 + margin, mask.shape[0])),
+            int(x0), int(min(cols[-1] + 1 + margin, mask.shape[1])))
+
+
 def _halved(img: np.ndarray) -> np.ndarray:
     """``img`` reduced 2 times by averaging 2 x 2 blocks (``INTER_AREA``; an odd last row or
     column is dropped)."""
@@ -176,19 +202,21 @@ def _halved(img: np.ndarray) -> np.ndarray:
 def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 1.0
                  ) -> tuple[np.ndarray, np.ndarray] | None:
     """PCA line of the pixels of a smoothed image ``sm`` well above its background, in
-    full-resolution pixels (``sm`` is the image reduced by ``scale``)."""
+    full-resolution pixels (``sm`` is the image reduced by ``scale``).
+
+    Above the background: brighter than ``base + max(0.35 (peak - base), 6 noise)``, with
+    ``base`` the median and ``peak`` the 99.9th percentile of the masked pixels (a uint8
+    image: both from one histogram of them; a float one: the median of every 7th)."""
     if sm.dtype == np.uint8 and sm.flags.c_contiguous:
-        # the masked pixels' histogram, and every 7th of them (flat indices kept per mask)
-        hist = _masked_hist(sm, mask)
+        hist = _masked_hist(sm, mask)  # the masked pixels' histogram
         if hist.sum() < 20:
             return None
-        every7 = _derived(mask, "every7", lambda: np.flatnonzero(mask)[::7])
-        base = _int_percentile(sm.ravel()[every7], 50.0)
+        base = _hist_percentile(hist, 50.0)
         peak = _hist_percentile(hist, 99.9)
     elif (vals := sm[mask]).size < 20:
         return None
     elif sm.dtype == np.uint8:
-        base = _int_percentile(vals[::7], 50.0)
+        base = _int_percentile(vals, 50.0)
         peak = _int_percentile(vals, 99.9)
     else:
         base = np.median(vals[::7])
@@ -470,18 +498,22 @@ def _background(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
     left, right = med[:m], med[m:2 * m]
     xl, xr = (third - 1) / 2.0, n - 1 - (third - 1) / 2.0
     u = (np.arange(n)[None, :] - xl) / (xr - xl)
-    bg = left[:, None] + (right - left)[:, None] * u
     if bprof is None:
-        return bg
+        return left[:, None] + (right - left)[:, None] * u
     if len(med) > 2 * m:
         bl, br = med[2 * m:3 * m], med[3 * m:]
     else:
         bl, br = _row_median(bprof[:, :third]), _row_median(bprof[:, -third:])
     db = br - bl
-    step = np.flatnonzero(np.abs(db) > 0.3)
-    if step.size:
-        slope = (right[step] - left[step]) / db[step]
-        bg[step] = left[step, None] + slope[:, None] * (bprof[step] - bl[step, None])
+    is_step = np.abs(db) > 0.3
+    if not is_step.any():
+        return left[:, None] + (right - left)[:, None] * u
+    # each row by its own model (most rows of a stripe across the squares are steps)
+    bg = np.empty((m, n), np.result_type(left, u))
+    flat, step = np.flatnonzero(~is_step), np.flatnonzero(is_step)
+    bg[flat] = left[flat, None] + (right[flat] - left[flat])[:, None] * u
+    slope = (right[step] - left[step]) / db[step]
+    bg[step] = left[step, None] + slope[:, None] * (bprof[step] - bl[step, None])
     return bg
 
 

@@ -241,3 +241,35 @@ def test_profile_reductions_match_the_row_wise_numpy(path) -> None:
                 part = np.ascontiguousarray(prof[:, :min(n, prof.shape[1])])
                 assert np.array_equal(sp._row_median(part), np.median(part, axis=1))
                 assert sp._median(part[0]) == float(np.median(part[0]))
+
+
+def _background_reference(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:
+    """The background as documented: a straight line through the medians of the two outer
+    thirds for every profile, replaced by ``b0 + b1 * blackness`` where the thirds'
+    blackness medians differ by more than 0.3."""
+    m, n = prof.shape
+    third = max(n // 3, 2)
+    left, right = np.median(prof[:, :third], axis=1), np.median(prof[:, -third:], axis=1)
+    xl, xr = (third - 1) / 2.0, n - 1 - (third - 1) / 2.0
+    bg = left[:, None] + (right - left)[:, None] * ((np.arange(n)[None, :] - xl) / (xr - xl))
+    if bprof is None:
+        return bg
+    bl, br = np.median(bprof[:, :third], axis=1), np.median(bprof[:, -third:], axis=1)
+    for r in np.flatnonzero(np.abs(br - bl) > 0.3):
+        bg[r] = left[r] + (right[r] - left[r]) / (br[r] - bl[r]) * (bprof[r] - bl[r])
+    return bg
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_background_rows_by_their_own_model(seed) -> None:
+    """Background per profile (rows with and without a blackness step, none, all): the
+    line or the blackness model of each row, bit for bit as the row-by-row reference."""
+    rng = np.random.default_rng(seed)
+    m, n = 200, int(rng.integers(20, 62))
+    prof = rng.normal(20, 5, (m, n)).astype(np.float32)
+    edge = rng.integers(0, n, m)[:, None]
+    for bprof in (None, (np.arange(n)[None, :] >= edge).astype(np.float32),
+                  np.zeros((m, n), np.float32), np.tile(np.arange(n) >= n // 2, (m, 1))
+                  .astype(np.float32)):
+        got, ref = sp._background(prof, bprof), _background_reference(prof, bprof)
+        assert got.dtype == ref.dtype and np.array_equal(got, ref)
