@@ -247,7 +247,7 @@ def _background_reference(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndar
     """The background as documented: a straight line through the medians of the two outer
     thirds for every profile, replaced by ``b0 + b1 * blackness`` where the thirds'
     blackness medians differ by more than 0.3."""
-    m, n = prof.shape
+    n = prof.shape[1]
     third = max(n // 3, 2)
     left, right = np.median(prof[:, :third], axis=1), np.median(prof[:, -third:], axis=1)
     xl, xr = (third - 1) / 2.0, n - 1 - (third - 1) / 2.0
