@@ -31,11 +31,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .geometry import median
 from .scan_segments import (  # noqa: F401  (re-exported: the segmentation lives there)
     Line2D,
     LineSegment,
     _line_segments,
-    _median,
     effective_range_noise,
     estimate_range_noise,
     estimate_range_quantum,
@@ -137,7 +137,7 @@ def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: 
 
     def median_range(m: int) -> float:  # a segment's median range, when asked
         if m not in med_rho:
-            med_rho[m] = _median(rho[segments[m].beams])
+            med_rho[m] = median(rho[segments[m].beams])
         return med_rho[m]
 
     candidates = []

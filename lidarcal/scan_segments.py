@@ -23,7 +23,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .geometry import MAD_TO_SIGMA
+from .geometry import MAD_TO_SIGMA, median
 
 _TAN_MAX_INCIDENCE = 6.0  # surfaces up to ~80 deg incidence count as continuous
 # a piece is two lines only if the second line at least halves the robust residual scale: a
@@ -82,7 +82,7 @@ def estimate_range_noise(range_mm: np.ndarray) -> float:
         raise ValueError(f"too few consecutive returns ({len(d2)} triples) to estimate the "
                          "range noise; pass range_noise_mm")
     # (the MAD ignores the order: d2, a temporary, is partitioned in place)
-    return float(MAD_TO_SIGMA * _median(np.abs(d2 - _median(d2, overwrite=True)), overwrite=True)
+    return float(MAD_TO_SIGMA * median(np.abs(d2 - median(d2, overwrite=True)), overwrite=True)
                  / np.sqrt(6.0))
 
 
@@ -162,21 +162,6 @@ def fit_line_2d(points: np.ndarray) -> Line2D:
     return Line2D(np.array([nx, ny]), nx * float(cx) + ny * float(cy))
 
 
-def _median(v: np.ndarray, overwrite: bool = False) -> float:
-    """``np.median`` of a finite 1-D array, by partition (no NaN handling); ``overwrite``:
-    ``v`` may be reordered (a temporary), else it is copied."""
-    n = len(v)
-    k = n // 2
-    w = v if overwrite else v.copy()  # (the method: np.partition's dispatch costs as much)
-    if n % 2:
-        w.partition(k)
-        return float(w[k])
-    w.partition([k - 1, k])
-    return (float(w[k - 1]) + float(w[k])) / 2
-
-
-
-
 def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
     """TLS sum of squared orthogonal residuals of p[:k] + p[k:] for k in [lo, hi) (prefix sums)."""
     q = p - np.add.reduce(p) / len(p)  # (p.mean(0))
@@ -202,7 +187,7 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
 
 def _mad_scale(r: np.ndarray) -> float:
     """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
-    return float(MAD_TO_SIGMA * _median(np.abs(r - _median(r)), overwrite=True))
+    return float(MAD_TO_SIGMA * median(np.abs(r - median(r)), overwrite=True))
 
 
 class _PieceScales:
@@ -387,7 +372,7 @@ def _refine_line(p: np.ndarray, sigma: float, best: np.ndarray, k: float = 3.5,
         resid = None
         # MAD of all the piece's residuals: robust to the few outliers, and not shrunk by
         # re-estimating it from already-trimmed inliers
-        scale = max(MAD_TO_SIGMA * _median(r), 0.25 * sigma)
+        scale = max(MAD_TO_SIGMA * median(r), 0.25 * sigma)
         new = r <= k * scale
         n_new = np.count_nonzero(new)
         if n_new < 2:
@@ -424,11 +409,11 @@ def _level_runs(p: np.ndarray, line: Line2D, mask: np.ndarray, sigma: float) -> 
     if len(bad) < _LEVEL_RUN:
         return out
     r = line.distance(p)
-    spacing = _median(np.hypot(*np.diff(p, axis=0).T))
+    spacing = median(np.hypot(*np.diff(p, axis=0).T))
     tau = 6 * np.sqrt(2) * sigma + _TAN_MAX_INCIDENCE * spacing
     for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
         rr = r[run]
-        if (len(run) >= _LEVEL_RUN and abs(_median(rr)) <= tau
+        if (len(run) >= _LEVEL_RUN and abs(median(rr)) <= tau
                 and _mad_scale(rr) <= 3 * sigma):
             out[run] = True
     return out
@@ -547,8 +532,8 @@ def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
     sigma = float(range_noise_mm) if range_noise_mm is not None else effective_range_noise(rho)
     r_valid = rho[valid_idx]
     if sigma < 1e-6 * r_valid.max():  # (else the floor, a millionth of the median range, is lower)
-        sigma = max(sigma, 1e-6 * _median(r_valid))
-    dtheta = _median(np.diff(np.radians(ang)))
+        sigma = max(sigma, 1e-6 * median(r_valid))
+    dtheta = median(np.diff(np.radians(ang)))
     rng = np.random.Generator(np.random.PCG64(_SEED))  # np.random.default_rng(0)
 
     labels = _runs(rho, valid_idx, dtheta, sigma, max_gap)

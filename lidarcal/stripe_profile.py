@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from .camera import undistort_pixels
-from .geometry import MAD_TO_SIGMA
+from .geometry import MAD_TO_SIGMA, median
 from .io.dataset import CameraModel
 from .laser_colour import SATURATED_DN
 from .stripe_quality import quality_problem, stripe_quality
@@ -243,7 +243,7 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         c = np.array([_mean(xk), _mean(yk)])
         t = _principal_direction_xy(xk - c[0], yk - c[1])
         r = (y - c[1]) * t[0] - (x - c[0]) * t[1]  # distance from the line
-        s = MAD_TO_SIGMA * _median(np.abs(r[keep]))
+        s = MAD_TO_SIGMA * median(np.abs(r[keep]))
         new = np.abs(r) <= max(3 * s, 2.0)
         if np.count_nonzero(new) < 10:
             return None
@@ -457,11 +457,6 @@ def _mean(v: np.ndarray) -> float:
     """``v.mean()`` of a 1-D float64 array (the same sum and division), without the
     wrapper's checks."""
     return v.sum() / v.size
-
-
-def _median(v: np.ndarray) -> float:
-    """``np.median`` of a finite 1-D array, by partition."""
-    return float(_row_median(v[None, :])[0])
 
 
 def _row_median(a: np.ndarray) -> np.ndarray:
@@ -731,7 +726,7 @@ def _fwhm(prof: np.ndarray, noise: float) -> float:
     if good.sum() < 3:
         return 3.0
     widths = np.add.reduce(s > 0.5 * pk, axis=0, dtype=np.intp)[good]
-    return min(max(_median(widths), 1.0), 30.0)
+    return min(max(median(widths), 1.0), 30.0)
 
 
 def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
@@ -767,7 +762,7 @@ def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,
             coef, *_ = np.linalg.lstsq(A[keep], v[keep], rcond=None)
             r = v - A @ coef
         rk = r[keep]
-        sig = MAD_TO_SIGMA * _median(np.abs(rk - _median(rk)))
+        sig = MAD_TO_SIGMA * median(np.abs(rk - median(rk)))
         new = np.isfinite(r) & (np.abs(r) <= max(k * sig, 0.05))
         if np.array_equal(new, keep):
             break

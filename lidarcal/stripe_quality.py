@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import median
+
 
 @dataclass(frozen=True)
 class StripeGates:
@@ -43,7 +45,7 @@ def stripe_quality(pts: np.ndarray, n_rejected: int, fit_rms_px: float, width_px
     n = len(pts)
     q = {"points": n, "rms_px": float(fit_rms_px), "width_px": float(width_px),
          "inlier_share": n / max(n + n_rejected, 1),
-         "median_snr": _median(snr) if n else 0.0, "coverage": 0.0}
+         "median_snr": median(snr) if n else 0.0, "coverage": 0.0}
     if n < 3:
         return q
     c = pts.mean(0)
@@ -122,10 +124,3 @@ def quality_problem(q: dict, gates: StripeGates = DEFAULT_GATES) -> str | None:
     return None
 
 
-def _median(v: np.ndarray) -> float:
-    """``np.median`` of a finite 1-D array, by partition (without np.median's checks)."""
-    k = len(v) // 2
-    if len(v) % 2:
-        return float(np.partition(v, k)[k])
-    lo, hi = np.partition(v, [k - 1, k])[k - 1:k + 1]
-    return float(0.5 * (lo + hi))

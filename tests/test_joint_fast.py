@@ -374,17 +374,21 @@ def test_whitening_of_large_groups_equals_the_row_gather():
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 10, 11, 1000, 1001, 36561])
-def test_median_overwrite_equals_numpys(n):
-    """The joint fit's median (one partition, lidarcal.joint.params.median_overwrite) is
-    numpy's, bit for bit, for odd and even counts, ties and a NaN."""
-    from lidarcal.joint.params import median_overwrite
+def test_median_equals_numpys(n):
+    """The one partition median (lidarcal.geometry.median, used by the scan and stripe steps
+    and the joint fit's noise model) is numpy's, bit for bit, for odd and even counts and
+    ties; the joint fit's robust sigma keeps numpy's NaN."""
+    from lidarcal.geometry import median
+    from lidarcal.joint.params import _robust_sigma
 
     rng = np.random.default_rng(n)
     for a in (np.abs(rng.standard_t(3, n)), np.round(rng.normal(size=n), 1)):
-        assert median_overwrite(a.copy()) == np.median(a)
+        b = a.copy()
+        assert median(a) == np.median(a) and np.array_equal(a, b)  # copied by default
+        assert median(b, overwrite=True) == np.median(a)
     a = rng.normal(size=n)
     a[n // 3] = np.nan
-    assert np.isnan(median_overwrite(a.copy()))
+    assert np.isnan(_robust_sigma(a, 0.0))
 
 
 def test_observation_grids_equal_the_rows(noisy_problem):

@@ -17,7 +17,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from vscan_truth import make_truth, simulate_scan
 
-from lidarcal.geometry import MAD_TO_SIGMA, unit
+from lidarcal.geometry import MAD_TO_SIGMA, median, unit
 from lidarcal.io.dataset import load_dataset, read_scan
 from lidarcal.io.pairs import read_view_pairs
 from lidarcal.pose import pose_from_line_pairs, single_shot_pose
@@ -26,7 +26,6 @@ from lidarcal.scan_segments import (
     _TAN_MAX_INCIDENCE,
     _component_labels,
     _level_runs,
-    _median,
     _merge_collinear,
     _robust_line,
     _runs,
@@ -111,7 +110,7 @@ def test_runs_are_the_plain_runs(name, ang, rng_mm):
     rho = np.hypot(pts[:, 0], pts[:, 1])
     valid = np.flatnonzero(np.isfinite(rho))
     sigma = effective_range_noise(rho)
-    dtheta = _median(np.diff(np.radians(ang)))
+    dtheta = median(np.diff(np.radians(ang)))
     for max_gap in (1, 4):
         assert np.array_equal(_runs(rho, valid, dtheta, sigma, max_gap),
                               _runs_v0(rho, valid, dtheta, sigma, max_gap))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from lidarcal import stripe_profile as sp
+from lidarcal.geometry import median
 from lidarcal.scan import fit_line_2d
 
 
@@ -240,7 +241,7 @@ def test_profile_reductions_match_the_row_wise_numpy(path) -> None:
             for n in (17, 18, 61):
                 part = np.ascontiguousarray(prof[:, :min(n, prof.shape[1])])
                 assert np.array_equal(sp._row_median(part), np.median(part, axis=1))
-                assert sp._median(part[0]) == float(np.median(part[0]))
+                assert median(part[0]) == float(np.median(part[0]))
 
 
 def _background_reference(prof: np.ndarray, bprof: np.ndarray | None) -> np.ndarray:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import MAD_TO_SIGMA, plane_basis, unit
+from ..geometry import MAD_TO_SIGMA, median, plane_basis, unit
 
 _CHI1_MEDIAN = 0.45493642311957283  # median of the chi-square distribution with 1 dof
 N_RIG = 10  # axis direction 2, axis point 2, reference rotation 3, reference centre 3
@@ -89,16 +89,6 @@ def _robust_sigma(r: np.ndarray, floor: float) -> float:
     least ``floor``; 1 without residuals."""
     if len(r) == 0:
         return 1.0
-    return float(max(MAD_TO_SIGMA * median_overwrite(np.abs(r)), floor))
-
-
-def median_overwrite(a: np.ndarray) -> float:
-    """``np.median(a)`` of a 1-D array, reordering ``a``: one partition about the upper
-    middle (the lower middle of an even count is the largest entry below it), the same value
-    as numpy's (NaN when ``a`` holds one) at a fraction of its cost on ~1e5 entries."""
-    n = len(a)
-    if n == 0 or np.isnan(a.max()):
-        return float(np.median(a))
-    k = n // 2
-    a.partition(k)
-    return float(a[k]) if n % 2 else float(0.5 * (a[k] + a[:k].max()))
+    a = np.abs(r)  # a temporary: its median may reorder it (NaN: numpy's NaN median)
+    med = float(np.median(a)) if np.isnan(a.max()) else median(a, overwrite=True)
+    return float(max(MAD_TO_SIGMA * med, floor))
