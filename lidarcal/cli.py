@@ -391,7 +391,7 @@ def _importing_in_background(module: str):
 
 
 def _cmd_calibrate(a: argparse.Namespace) -> int:
-    from .io.dataset import REFLECTANCE_IMAGES, ImagePrefetch, load_dataset, spread_indices
+    from .io.dataset import load_dataset, prefetch_stripe_images
 
     ds = load_dataset(a.dataset)
     mark("dataset")
@@ -401,9 +401,7 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     # import in another; the boards of board.png, which need neither, are found meanwhile
     # (OpenCV releases the GIL). Leaving a block (result or error) stops and joins its thread
     # before anything is printed
-    # (the few images the reflectance ratio is pooled from first, as calibrate's own prefetch)
-    with ImagePrefetch(todo, ds.image_size, laser_colour=ds.lidar.laser_colour,
-                       first=spread_indices(len(todo), REFLECTANCE_IMAGES)) as images:
+    with prefetch_stripe_images(ds, todo) as images:
         boards = None
         with _imports_without_gc():
             with _importing_in_background(".pipeline"):

@@ -41,6 +41,7 @@ from .io.dataset import (
     LidarSpec,
     Position,
     load_dataset,
+    prefetch_stripe_images,
     read_image,
     read_scan,
     read_stripe_image,
@@ -242,7 +243,7 @@ def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, Boar
 
 def _rho_picks(positions: list[Position], n_images: int = REFLECTANCE_IMAGES) -> list[int]:
     """Indices of the positions spread over the sweep that the reflectance ratio is pooled from
-    (the prefetch decodes them first: ``ImagePrefetch(..., first=_rho_picks(positions))``)."""
+    (:func:`lidarcal.io.dataset.prefetch_stripe_images` decodes them first)."""
     return spread_indices(len(positions), n_images)
 
 
@@ -290,8 +291,7 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
     todo = [p for p in ds.positions if p.index not in skip]
     own = images is None
     if own:
-        images = ImagePrefetch(todo, ds.image_size, laser_colour=ds.lidar.laser_colour,
-                               first=_rho_picks(todo))
+        images = prefetch_stripe_images(ds, todo)
     try:
         camera, intr = camera_for(ds)
         mark("camera")

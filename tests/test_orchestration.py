@@ -57,6 +57,20 @@ def test_prefetch_decodes_the_images_asked_for_first(tmp_path):
         assert np.array_equal(pre.get(ds.positions[5]), ref)
 
 
+def test_calibrate_prefetch_decodes_the_reflectance_images_first(tmp_path):
+    """The prefetch calibrate (and the CLI) starts queues the positions the reflectance ratio
+    reads before the workers fork (pipeline._rho_picks) ahead of the others."""
+    from lidarcal.io.dataset import prefetch_stripe_images
+    from lidarcal.pipeline import _rho_picks
+
+    ds = load_dataset(bundled_dataset(tmp_path / "ds", n=12))
+    picks = _rho_picks(ds.positions)
+    with prefetch_stripe_images(ds, ds.positions) as pre:
+        order = [p.index for p in pre._todo]
+    assert order[:len(picks)] == [ds.positions[k].index for k in picks]
+    assert sorted(order) == sorted(p.index for p in ds.positions)
+
+
 def test_spread_indices():
     """Both ends, evenly spaced, distinct, at most k (all of a short list)."""
     assert spread_indices(87, 5) == [0, 22, 43, 64, 86]

@@ -530,6 +530,14 @@ class ImagePrefetch:
         return img
 
 
+def prefetch_stripe_images(ds: Dataset, positions: list[Position]) -> ImagePrefetch:
+    """The stripe images of ``positions`` decoding in a background thread, as ``calibrate``
+    reads them: the :data:`REFLECTANCE_IMAGES` the reflectance ratio is pooled from
+    (:func:`spread_indices`, before the workers fork) first, then the others."""
+    return ImagePrefetch(positions, ds.image_size, laser_colour=ds.lidar.laser_colour,
+                         first=spread_indices(len(positions), REFLECTANCE_IMAGES))
+
+
 def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``scans/NNNN.csv`` as ``(angle_deg, range_mm)``; no-return beams get range NaN.
 
