@@ -34,8 +34,7 @@ def _hist_percentile(hist: np.ndarray, q: float) -> float:
 def _int_percentile(v: np.ndarray, q: float) -> float:
     """``np.percentile(v, q)`` (linear interpolation) of non-negative integers, in O(n)."""
     if v.dtype == np.uint8:
-        hist = cv2.calcHist([np.ascontiguousarray(v).reshape(-1, 1)], [0], None, [256], [0, 256])
-        return _hist_percentile(hist.ravel().astype(np.int64), q)
+        return _hist_percentile(_hist(np.ascontiguousarray(v).reshape(-1, 1)), q)
     return _hist_percentile(np.bincount(v.ravel()), q)
 
 
