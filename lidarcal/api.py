@@ -69,6 +69,24 @@ class Calibration:
         return sweep_cloud(sweep, self.model, frame=frame, lidar=lidar)
 
 
+def _number_as_text(value, where: str) -> str | None:
+    """Where in ``value`` (nested dicts and lists) a number is written as text (``"12.5"``),
+    which numpy would read as the number without a word: None when nowhere."""
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            return None
+        return f"'{where}' ({value!r})"
+    items = value.items() if isinstance(value, dict) else enumerate(value) \
+        if isinstance(value, list) else ()
+    for k, v in items:
+        found = _number_as_text(v, f"{where}.{k}" if isinstance(k, str) else f"{where}[{k}]")
+        if found:
+            return found
+    return None
+
+
 def load_calibration(path: str | os.PathLike, model: str = "poses") -> Calibration:
     """Read ``calibration.json`` (a file or the folder holding it).
 
@@ -80,17 +98,24 @@ def load_calibration(path: str | os.PathLike, model: str = "poses") -> Calibrati
     p = Path(path)
     if p.is_dir():
         p = p / "calibration.json"
+    fix = "give the calibration.json of 'lidarcal calibrate' (or run it again)"
     data = read_json_object(p, "missing; run 'lidarcal calibrate DATASET --out DIR' first",
-                            "run 'lidarcal calibrate' again", f" ('{CALIBRATION_FORMAT}')")
+                            "run 'lidarcal calibrate' again", f" ('{CALIBRATION_FORMAT}'); {fix}")
     if data.get("format") != CALIBRATION_FORMAT:
-        raise DatasetError(p, f"unknown format {data.get('format')!r}, expected '{CALIBRATION_FORMAT}'")
+        raise DatasetError(p, f"unknown format {data.get('format')!r}, expected "
+                              f"'{CALIBRATION_FORMAT}' (not a calibration of this lidarcal); {fix}")
     key = "model" if model == "poses" else f"model_{model}"
     if key not in data and data.get("method") == model:
         key = "model"
     if key not in data:
         raise DatasetError(p, f"holds no '{key}' pose function; recalibrate with this lidarcal version")
     try:
+        if not isinstance(data[key], dict):
+            raise TypeError(f"expected an object, got {type(data[key]).__name__}")
+        where = _number_as_text(data[key], key)
+        if where:
+            raise TypeError(f"{where} is a number written as text")
         fn = model_from_dict(data[key])
-    except (KeyError, TypeError, ValueError) as e:
-        raise DatasetError(p, f"'{key}' is malformed ({e})") from None
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
+        raise DatasetError(p, f"'{key}' is malformed ({' '.join(str(e).split())}); {fix}") from None
     return Calibration(p, data, fn)

@@ -11,6 +11,7 @@ image coordinates are ``(x / z, y / z)``; lengths in mm.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
@@ -490,22 +491,43 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     obj = board.object_points().astype(np.float32)
     used, rejected, img_pts, obj_pts = [], [], [], []
     size = tuple(image_size) if image_size is not None else None
+    unreadable: list[tuple[Path, str]] = []  # a broken photo is left out (warned), not fatal
+    found: list[tuple[Path, tuple[int, int], np.ndarray | None]] = []
     for p in paths:
-        img = read_image(p, size)
-        if size is None:
-            size = (img.shape[1], img.shape[0])
-        corners = detect_chessboard(img, board.pattern_size)
-        if corners is None:
-            rejected.append(p)
+        try:
+            img = read_image(p, size)
+        except DatasetError as e:
+            unreadable.append((p, e.problem.split("; ")[0]))
             continue
-        used.append(p)
-        img_pts.append(corners)
-        obj_pts.append(obj.astype(np.float64))
+        found.append((p, (img.shape[1], img.shape[0]), detect_chessboard(img, board.pattern_size)))
+    if size is None and found:  # the photos' own size: that of most of them
+        counts = Counter(s for _, s, _ in found)
+        size, n = counts.most_common(1)[0]
+        if 2 * n <= len(found) and len(counts) > 1:
+            raise DatasetError(folder, "photos of " + ", ".join(f"{w}x{h} ({k})" for (w, h), k in
+                                                               counts.most_common())
+                               + " pixels, none the size of most; give one camera's photos, "
+                                 "at its full resolution")
+    for p, s, corners in found:
+        if s != size:
+            unreadable.append((p, f"image is {s[0]}x{s[1]}, the other photos {size[0]}x{size[1]}"))
+        elif corners is None:
+            rejected.append(p)
+        else:
+            used.append(p)
+            img_pts.append(corners)
+            obj_pts.append(obj.astype(np.float64))
+    rejected = sorted(rejected + [p for p, _ in unreadable])
+    notes = tuple(f"{p}: {problem}; view not used" for p, problem in unreadable)
     if len(used) < MIN_VIEWS:
         raise DatasetError(folder, f"the {board.inner_corners[0]}x{board.inner_corners[1]} "
                                    f"chessboard was found in {len(used)} of {len(paths)} view(s), "
-                                   f"need at least {MIN_VIEWS}; add views or fix "
-                                   "'intrinsics_board' in dataset.json")
+                                   f"need at least {MIN_VIEWS}"
+                                   + (f" ({len(unreadable)} cannot be used, e.g. "
+                                      f"{unreadable[0][0].name}: {unreadable[0][1]})"
+                                      if unreadable else "")
+                                   + "; add views or fix the board's pattern "
+                                     "('intrinsics_board' in dataset.json, --pattern)")
     if fix_k3 is None and len(used) < MIN_VIEWS_FOR_K3:
         fix_k3 = True
     res = _calibrate(img_pts, obj_pts, size, cv2.CALIB_FIX_K3)
@@ -529,7 +551,7 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
             res = _calibrate(img_pts, obj_pts, size, flags)
     camera, per_view, rvecs, tvecs = res
     return IntrinsicsResult(camera, per_view, tuple(used), tuple(rejected), tuple(img_pts),
-                            tuple(obj_pts), flags, rvecs, tvecs, heldout)
+                            tuple(obj_pts), flags, rvecs, tvecs, heldout, warnings=notes)
 
 
 #: whether :func:`calibrate_intrinsics` refines the photos' corners by their point symmetry

@@ -348,7 +348,8 @@ def write_sheet(res: CheckResult, path: str | os.PathLike) -> Path:
     path = Path(path)
     fmt = path.suffix.lower().lstrip(".")
     if fmt not in ("png", "pdf"):
-        raise DatasetError(path, "the contact sheet must be a .png or .pdf file")
+        raise DatasetError(path, "the contact sheet must be a .png or .pdf file; give "
+                                 "--sheet NAME.png or NAME.pdf (or --no-sheet)")
     return write_atomic(path, lambda tmp: contact_sheet(res).savefig(tmp, format=fmt, dpi=200),
                         ".tmp")
 

@@ -41,10 +41,26 @@ def _numpy_one_blas_thread():
 
 np = _numpy_one_blas_thread()
 mark("numpy")
+# OpenCV's own warnings (e.g. imread of an unreadable file) are not one line naming what to do;
+# the readers check their files and say so themselves
+os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
 
-from .io.dataset import DatasetError
+from .io.dataset import DatasetError, check_output
 
 mark("cli")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a bad argument in one line like every other error:
+    ``error: --seed: invalid int value: 'x'; see 'lidarcal simulate --help'`` (exit 2)."""
+
+    def error(self, message: str):
+        what, sep, problem = message.partition(": ")
+        if not (sep and what.startswith("argument ")):
+            what, problem = self.prog, message
+        else:
+            what = what[len("argument "):].split("/")[-1]
+        self.exit(2, f"error: {what}: {' '.join(problem.split())}; see '{self.prog} --help'\n")
 
 
 def _pattern(text: str) -> tuple[int, int]:
@@ -65,6 +81,27 @@ def _diameters(text: str) -> tuple[float, ...]:
     return vals
 
 
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v > 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return v
+
+
+def _at_least_3(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 3:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 3 (the method needs at least 3 "
+                                         f"positions), got {text!r}")
+    return v
+
+
 def _non_negative(text: str) -> float:
     try:
         v = float(text)
@@ -83,22 +120,23 @@ def _chessboard_options(s: argparse.ArgumentParser, example: str, camera: bool =
     note = "" if req else f" (default: {default_from})"
     s.add_argument("--pattern", type=_pattern, required=req, default=None,
                    help=f"inner corners, e.g. {example}{note}")
-    s.add_argument("--square-mm", type=float, required=req, default=None,
+    s.add_argument("--square-mm", type=_positive, required=req, default=None,
                    help=f"side of a square, mm{note}")
     if camera:
         s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lidarcal", description=__doc__.splitlines()[0])
+    p = _Parser(prog="lidarcal", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="write a synthetic dataset (with truth.json)")
     s.add_argument("out", type=Path)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--rig", default="paper", help="rig preset: paper, wide, harsh")
-    s.add_argument("--positions", type=int, default=None, help="number of turntable positions")
+    s.add_argument("--rig", default="paper", choices=["paper", "wide", "harsh"], help="rig preset")
+    s.add_argument("--positions", type=_at_least_3, default=None,
+                   help="number of turntable positions (>= 3)")
     s.add_argument("--no-sweeps", action="store_true", help="skip the disc-measurement sweeps")
     s.add_argument("--footprint", choices=["gaussian", "first-echo"], default=None,
                    help="LiDAR echo model: gaussian (energy-weighted mixed ranges, default) or "
@@ -249,6 +287,8 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     from .synthetic import simulate
     from .synthetic.config import get_rig
 
+    check_output(a.out, "folder")
+
     rig = get_rig(a.rig)
     if a.footprint is not None:
         rig = rig.with_(footprint_model=a.footprint)
@@ -266,6 +306,8 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
 
 def _cmd_import(a: argparse.Namespace) -> int:
     from .io.bag import import_bag
+
+    check_output(a.out, "folder")
 
     res = import_bag(a.bag, a.rig, a.out, scan_topic=a.scan_topic, stripe_topic=a.stripe_topic,
                      board_topic=a.board_topic, angle_topic=a.angle_topic, joint=a.joint,
@@ -287,20 +329,27 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
     from .camera import calibrate_intrinsics
     from .io.dataset import BoardSpec, write_json_atomic
 
+    if a.out is not None:
+        check_output(a.out, "file")
     if not a.images.is_dir():
-        raise DatasetError(a.images, "not a folder of chessboard images")
+        raise DatasetError(a.images, "not a folder of chessboard images; give the folder that "
+                                     "holds the photos")
     paths = sorted(p for p in a.images.iterdir()
                    if p.suffix.lower() in {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
     if not paths:
-        raise DatasetError(a.images, "holds no .png/.jpg/.bmp/.tif images")
+        raise DatasetError(a.images, "holds no .png/.jpg/.bmp/.tif images; give the folder that "
+                                     "holds the photos")
     res = calibrate_intrinsics(paths, BoardSpec(a.pattern, a.square_mm))
     cam = res.camera
     K, d = cam.K, cam.dist
     print(f"views used {len(res.files_used)} of {len(paths)}; image "
           f"{cam.image_size[0]}x{cam.image_size[1]}")
+    for w in res.warnings:  # photos that cannot be used at all (unreadable, another size)
+        print(f"warning: {w}", file=sys.stderr)
     for f in res.files_rejected:
-        print(f"warning: {f}: the {a.pattern[0]}x{a.pattern[1]} chessboard was not found; "
-              "view not used", file=sys.stderr)
+        if not any(w.startswith(f"{f}: ") for w in res.warnings):
+            print(f"warning: {f}: the {a.pattern[0]}x{a.pattern[1]} chessboard was not found; "
+                  "view not used", file=sys.stderr)
     print(f"fx {K[0, 0]:.3f}  fy {K[1, 1]:.3f}  cx {K[0, 2]:.3f}  cy {K[1, 2]:.3f}")
     print("dist k1 k2 p1 p2 k3: " + " ".join(f"{v:.6f}" for v in d))
     print(f"RMS reprojection error {cam.rms_px:.4f} px")
@@ -314,6 +363,7 @@ def _cmd_laser_plane(a: argparse.Namespace) -> int:
     from .io.dataset import BoardSpec
     from .laserplane import laser_plane, read_camera_json, write_laser_plane
 
+    check_output(a.out, "file")
     res = laser_plane(a.photos, BoardSpec(a.pattern, a.square_mm), read_camera_json(a.camera),
                       a.laser_colour)
     for w in res.warnings:
@@ -393,6 +443,7 @@ def _importing_in_background(module: str):
 def _cmd_calibrate(a: argparse.Namespace) -> int:
     from .io.dataset import load_dataset, prefetch_stripe_images
 
+    check_output(a.out, "folder")
     ds = load_dataset(a.dataset)
     mark("dataset")
     skip = set(a.skip)
@@ -446,6 +497,7 @@ def _cmd_pose(a: argparse.Namespace) -> int:
 def _cmd_measure(a: argparse.Namespace) -> int:
     from .pipeline import measure_dataset, write_measurements
 
+    check_output(a.out, "folder")
     table = measure_dataset(a.dataset, a.calibration, references=a.reference)
     for w in table.attrs.get("warnings", []):
         print(f"warning: {w}", file=sys.stderr)
@@ -462,6 +514,7 @@ def _cmd_measure(a: argparse.Namespace) -> int:
 def _cmd_cloud(a: argparse.Namespace) -> int:
     from .cloud import dataset_clouds
 
+    check_output(a.out, "file" if a.sweep and len(a.sweep) == 1 else "folder")
     for path in dataset_clouds(a.dataset, a.calibration, None if a.all else a.sweep, a.out,
                                frame=a.frame, fmt=a.format):
         print(f"wrote {path}")
@@ -471,6 +524,7 @@ def _cmd_cloud(a: argparse.Namespace) -> int:
 def _cmd_report(a: argparse.Namespace) -> int:
     from .report import write_report
 
+    check_output(a.out, "file")
     path = write_report(a.dataset, a.out, calibration=a.calibration, measurements=a.measurements,
                         command=" ".join(["lidarcal", *sys.argv[1:]]))
     print(f"wrote {path}")
@@ -480,12 +534,18 @@ def _cmd_report(a: argparse.Namespace) -> int:
 def _cmd_check(a: argparse.Namespace) -> int:
     from .check import run_check
 
+    if a.sheet is not None and not a.no_sheet:
+        check_output(a.sheet, "file")
+        if a.sheet.suffix.lower() not in (".png", ".pdf"):  # said before the report, not after
+            raise DatasetError(a.sheet, "the contact sheet must be a .png or .pdf file; give "
+                                        "--sheet NAME.png or NAME.pdf (or --no-sheet)")
     return run_check(a.dataset, sheet=None if a.no_sheet else (a.sheet or "default"))
 
 
 def _cmd_workbook(a: argparse.Namespace) -> int:
     from .workbook import write_workbook
 
+    check_output(a.out, "file")
     select = a.notebooks.split(",") if a.notebooks else None
     path = write_workbook(a.dataset, a.out, notebook_dir=a.notebook_dir, select=select,
                           timeout=a.timeout, keep=a.keep)
@@ -498,6 +558,7 @@ def _cmd_planes(a: argparse.Namespace) -> int:
     from .planes import run_planes, write_extrinsics
     from .planes_plots import write_projections
 
+    check_output(a.out, "folder")
     if a.square_mm is not None and a.square_mm <= 0:
         raise DatasetError(a.folder, f"--square-mm must be positive, got {a.square_mm:g}")
     res = run_planes(a.folder, a.camera, board_spec(a.folder, a.pattern, a.square_mm))
@@ -520,6 +581,7 @@ def _cmd_planes(a: argparse.Namespace) -> int:
 def _cmd_overlay(a: argparse.Namespace) -> int:
     from .overlay import overlay_calibration
 
+    check_output(a.out, "file")
     overlay_calibration(a.dataset, a.calibration, a.index, a.out)
     print(f"wrote {a.out}")
     return 0

@@ -279,7 +279,8 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
     ds = load_dataset(dataset)
     cal = calibration if hasattr(calibration, "pose") else load_calibration(calibration)
     if not ds.measurements:
-        raise DatasetError(ds.dataset_json, "lists no 'measurements' to measure")
+        raise DatasetError(ds.dataset_json, "lists no 'measurements' to measure; add the sweeps "
+                                            "(name, sweep file) to it, see docs/dataset-format.md")
     specs = {m.name: m for m in ds.measurements}
     refs = list(dict.fromkeys(references or []))
     for name in refs:

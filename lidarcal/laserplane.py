@@ -16,7 +16,6 @@ Output (``lidarcal-laser-plane/1``): ``normal . X = d_mm`` in the camera frame
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +25,15 @@ import numpy as np
 from .board import board_view
 from .camera import backproject_to_plane, detect_chessboard
 from .geometry import Plane, fit_plane
-from .io.dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
+from .io.dataset import (
+    BoardSpec,
+    CameraModel,
+    DatasetError,
+    decode_image,
+    parse_camera,
+    read_json_object,
+    write_json_atomic,
+)
 from .laser_colour import SATURATED_DN, detect_laser_colour, laser_response
 from .stripe import stripe_centres
 from .stripe_quality import quality_problem
@@ -88,14 +95,8 @@ def _num(v: float | None) -> float | None:
 def read_camera_json(path: str | Path) -> CameraModel:
     """``camera.json``: the keys of dataset.json's ``camera`` block (K, dist, image_size)."""
     path = Path(path)
-    try:
-        raw = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(path, "missing camera file; give the camera.json of "
-                                 "`lidarcal intrinsics`") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DatasetError(path, f"not readable JSON ({e}); give the camera.json of "
-                                 "`lidarcal intrinsics`") from None
+    fix = "give the camera.json of `lidarcal intrinsics`"
+    raw = read_json_object(path, f"missing camera file; {fix}", fix, f" (K, dist, image_size); {fix}")
     cam = parse_camera(raw, path)
     return CameraModel(cam.K, cam.dist, cam.image_size, source=str(path), rms_px=raw.get("rms_px"))
 
@@ -150,9 +151,10 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
                   laser_colour: str = "auto") -> PhotoResult:
     """Stripe centres and 3D stripe points (eq. 5) of one photo, or its problem."""
     res = PhotoResult(path.name)
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        res.problem = "cannot be decoded as an image"
+    try:
+        img = decode_image(path, cv2.IMREAD_COLOR)
+    except DatasetError as e:
+        res.problem = e.problem.split("; ")[0]
         return res
     if (img.shape[1], img.shape[0]) != tuple(camera.image_size):
         res.problem = (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
@@ -277,11 +279,19 @@ def laser_plane(folder: str | Path, board: BoardSpec, camera: CameraModel,
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise DatasetError(folder, "not a folder of laser photos")
+        raise DatasetError(folder, "not a folder of laser photos; give the folder that holds "
+                                 "them")
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not paths:
-        raise DatasetError(folder, "holds no .png/.jpg/.bmp/.tif photos")
+        raise DatasetError(folder, "holds no .png/.jpg/.bmp/.tif photos; give the folder that "
+                                 "holds them")
     photos = [measure_photo(p, camera, board, laser_colour) for p in paths]
+    sizes = {(p.problem or "").split(", the camera's")[0] for p in photos}
+    if len(sizes) == 1 and all((p.problem or "").startswith("image is ") for p in photos):
+        raise DatasetError(Path(camera.source), f"image_size is {camera.image_size[0]}x"
+                                                f"{camera.image_size[1]} but every photo is "
+                                                f"{sizes.pop()[len('image is '):]}; give the "
+                                                "camera.json of the camera that took them")
     try:
         plane, rms, s_ang, s_d, warn = fit_laser_plane(photos)
     except ValueError as e:

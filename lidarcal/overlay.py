@@ -99,7 +99,8 @@ def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLi
     ds = load_dataset(dataset)
     pos = [p for p in ds.positions if p.index == index]
     if not pos:
-        raise DatasetError(ds.dataset_json, f"no position with index {index}; indices are "
+        raise DatasetError(ds.root / "positions.csv", f"no position with index {index}; give one "
+                                                      "of its indices, "
                                             f"{ds.positions[0].index}..{ds.positions[-1].index}")
     p = pos[0]
     cal = load_calibration(calibration)
@@ -108,7 +109,7 @@ def overlay_calibration(dataset: str | os.PathLike, calibration: str | os.PathLi
     img_path = p.stripe_image
     stripe = read_image(img_path, ds.image_size, colour="max")
     img = np.repeat(stripe[..., None], 3, axis=2)  # the stripe in red over the dimmed board photo
-    if ds.board_image.is_file():
+    if ds.board_image.exists():  # (optional here; read, and refused, when it is there)
         board = (0.5 * read_image(ds.board_image, ds.image_size)).astype(np.uint8)
         img = np.stack([board, board, np.maximum(board, stripe)], axis=2)
     camera = ds.camera

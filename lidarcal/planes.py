@@ -568,13 +568,18 @@ def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int 
 
     views = []
     for pr in pairs:
-        img = read_image(pr.image_path, camera.image_size)
-        found = find_board(img, board)
+        try:
+            img, problem = read_image(pr.image_path, camera.image_size), ""
+        except DatasetError as e:  # a broken photo leaves its view out, like a missed board
+            img, problem = None, e.problem.split("; ")[0]
+        found = find_board(img, board) if img is not None else []
         if np.count_nonzero(np.isfinite(pr.range_mm)) < MIN_POINTS:
             raise DatasetError(pr.scan_path, f"fewer than {MIN_POINTS} returns; check the file")
         sig = local_line_noise(pr.angle_deg, pr.range_mm)
         v = ViewData(pr.name, None, pr.angle_deg, pr.range_mm, max(sig, 0.3))
-        if not found:
+        if problem:
+            v.note = f"photo {pr.image_path.name}: {problem}"
+        elif not found:
             v.note = (f"no {board.inner_corners[0]}x{board.inner_corners[1]} chessboard found in "
                       f"{pr.image_path.name}")
         else:  # the corner set that fits the board model best
@@ -720,6 +725,11 @@ def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
                                                "image_size", "fix it"), cpath)
     pairs = read_view_pairs(folder)
     views = prepare_views(pairs, cam, board)
+    sizes = {v.note.partition(": image is ")[2].partition(",")[0] for v in views}
+    if all(": image is " in v.note for v in views) and len(sizes) == 1:
+        raise DatasetError(cpath, f"image_size is {cam.image_size[0]}x{cam.image_size[1]} but "
+                                  f"every photo is {sizes.pop()}; give the camera.json of the "
+                                  "camera that took them")
     res = calibrate_planes(views, seed=seed, limit_mm=limit_mm, where=folder)
     res.camera = cam  # type: ignore[attr-defined]
     res.pairs = pairs  # type: ignore[attr-defined]

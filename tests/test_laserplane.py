@@ -197,7 +197,7 @@ def test_cli_bad_input_one_line(photos, tmp_path) -> None:
     r = _run("laser-plane", str(empty), "--pattern", "8x5", "--square-mm", "30",
              "--camera", str(photos / "camera.json"), "--out", str(tmp_path / "p.json"))
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
-        f"error: {empty}: holds no .png/.jpg/.bmp/.tif photos"]
+        f"error: {empty}: holds no .png/.jpg/.bmp/.tif photos; give the folder that holds them"]
     r = _run("laser-plane", str(photos), "--pattern", "8x5", "--square-mm", "30",
              "--camera", str(tmp_path / "nope.json"), "--out", str(tmp_path / "p.json"))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1

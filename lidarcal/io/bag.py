@@ -52,6 +52,7 @@ from .dataset import (
     DATASET_FORMAT,
     DatasetError,
     current_umask,
+    decode_image,
     write_json_atomic,
 )
 from .rig import RigFile, read_rig
@@ -686,10 +687,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
 
     # board image
     if board_image is not None:
-        img = cv2.imread(str(board_image), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise DatasetError(board_image, "cannot be decoded as an image (--board-image)")
-        board = img
+        board = decode_image(board_image, fix="give the lit board image as a PNG (--board-image)")
     if board is None:
         raise DatasetError(bag, f"{topics['board']}: no board frame while the turntable is still; "
                                 "record a lit frame at a stop or give --board-image FILE")
@@ -717,7 +715,8 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
     cam = rigf.base.get("camera")
     if cam is not None and tuple(cam["image_size"]) != (frame_shape[1], frame_shape[0]):
         raise DatasetError(rigf.path, f"camera.image_size is {cam['image_size']} but the frames on "
-                                      f"{topics['stripe']} are {frame_shape[1]}x{frame_shape[0]}")
+                                      f"{topics['stripe']} are {frame_shape[1]}x{frame_shape[0]}; "
+                                      "give the camera block of the camera that recorded the bag")
     if rigf.intrinsics_dir is not None:
         _copy_intrinsics(rigf.intrinsics_dir, tmp / "intrinsics")
 
@@ -784,12 +783,11 @@ def _copy_intrinsics(src: Path, dst: Path) -> None:
         if ext == ".png":
             shutil.copyfile(p, dst / p.name)
         elif ext in (".jpg", ".jpeg", ".bmp", ".tif", ".tiff"):
-            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise DatasetError(p, "cannot be decoded as an image (intrinsics photo)")
+            img = decode_image(p, fix="copy the intrinsics photo again or remove it")
             _write_png(dst / f"{p.stem}.png", img)
         else:
             continue
         n += 1
     if n == 0:
-        raise DatasetError(src, "holds no .png/.jpg/.bmp/.tif chessboard photos (RIG.json intrinsics)")
+        raise DatasetError(src, "holds no .png/.jpg/.bmp/.tif chessboard photos (RIG.json "
+                                "intrinsics); put the photos there or remove 'intrinsics'")

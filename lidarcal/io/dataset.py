@@ -33,6 +33,9 @@ DEFAULT_Z_AXIS_HINT = (0.0, -1.0, 0.0)
 #: stripe's reflectance ratio from before its workers fork
 #: (:func:`lidarcal.pipeline.dataset_reflectance_ratio`); its prefetch decodes them first
 REFLECTANCE_IMAGES = 5
+#: a scan (or sweep) whose returns are all shorter than this is in the wrong unit (metres),
+#: not a scene: a LiDAR calibrated against boards sees them at 0.3 m or more
+MIN_PLAUSIBLE_RANGE_MM = 100.0
 
 
 class DatasetError(Exception):
@@ -158,23 +161,37 @@ class Dataset:
 def read_json_object(path: Path, missing: str, fix: str, hint: str = "") -> dict:
     """The JSON object in ``path``, or :class:`DatasetError`: ``missing`` when there is no such
     file, ``not valid JSON (...); {fix}``, ``must hold a JSON object{hint}``."""
+    if path.is_dir():
+        raise DatasetError(path, f"is a folder, expected a JSON file; {fix}")
     if not path.is_file():
         raise DatasetError(path, missing)
     try:
-        raw = json.loads(path.read_text(encoding="utf-8-sig"))
+        text = path.read_text(encoding="utf-8-sig")
+        raw = json.loads(text)
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(path, f"not valid JSON ({e}); {fix}") from None
+        what = "is empty (0 bytes)" if not text.strip() else f"not valid JSON ({e})" \
+            if isinstance(e, json.JSONDecodeError) else "not UTF-8 text"
+        raise DatasetError(path, f"{what}; {fix}") from None
+    except OSError as e:
+        raise DatasetError(path, f"cannot be read ({e.strerror or e}); check its permissions") \
+            from None
     if not isinstance(raw, dict):
-        raise DatasetError(path, f"must hold a JSON object{hint}")
+        raise DatasetError(path, f"must hold a JSON object{hint}" + ("" if ";" in hint else
+                                                                    f"; {fix}"))
     return raw
 
 
 def _num(value: Any, path: Path, key: str, positive: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise DatasetError(path, f"'{key}' must be a finite number, got {value!r}; fix dataset.json")
+        raise DatasetError(path, f"'{key}' must be a finite number, got {value!r}; {_fix(path)}")
     if positive and value <= 0:
-        raise DatasetError(path, f"'{key}' must be positive, got {value!r}; fix dataset.json")
+        raise DatasetError(path, f"'{key}' must be positive, got {value!r}; {_fix(path)}")
     return float(value)
+
+
+def _fix(path: Path) -> str:
+    """What to do about a bad key: fix the file (by name) as the format says."""
+    return f"fix {Path(path).name} (see docs/dataset-format.md)"
 
 
 def _get(d: dict, key: str, path: Path, where: str) -> Any:
@@ -185,42 +202,65 @@ def _get(d: dict, key: str, path: Path, where: str) -> Any:
 
 def _board(d: Any, path: Path, key: str) -> BoardSpec:
     if not isinstance(d, dict):
-        raise DatasetError(path, f"'{key}' must be an object with inner_corners and square_mm")
+        raise DatasetError(path, f"'{key}' must be an object with inner_corners and square_mm; "
+                                 f"{_fix(path)}")
     ic = _get(d, "inner_corners", path, f"{key}.")
     if (not isinstance(ic, list) or len(ic) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2 for v in ic)):
-        raise DatasetError(path, f"'{key}.inner_corners' must be two integers >= 2, got {ic!r}")
+        raise DatasetError(path, f"'{key}.inner_corners' must be two integers >= 2, got {ic!r}; "
+                                 "count the inner corners (where four squares meet) per row and "
+                                 "per column")
     sq = _num(_get(d, "square_mm", path, f"{key}."), path, f"{key}.square_mm", positive=True)
     return BoardSpec((int(ic[0]), int(ic[1])), sq)
 
 
+def _numbers_only(value: Any) -> bool:
+    """Whether ``value`` is a number or (nested) lists of numbers (no text, no booleans)."""
+    if isinstance(value, list):
+        return all(_numbers_only(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _matrix(value: Any, shape: tuple[int, ...], path: Path, key: str) -> np.ndarray:
+    if not _numbers_only(value):
+        raise DatasetError(path, f"'{key}' must hold numbers (not text), got {value!r}; "
+                                 f"{_fix(path)}")
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
-        raise DatasetError(path, f"'{key}' must be numeric, got {value!r}") from None
-    if arr.shape != shape or not np.all(np.isfinite(arr)):
-        raise DatasetError(path, f"'{key}' must be a finite {shape} array, got {value!r}")
+        raise DatasetError(path, f"'{key}' must be numeric, got {value!r}; {_fix(path)}") from None
+    if arr.dtype == object or arr.shape != shape or not np.all(np.isfinite(arr)):
+        raise DatasetError(path, f"'{key}' must be a finite {shape} array, got {value!r}; "
+                                 f"{_fix(path)}")
     return arr
 
 
 def parse_camera(d: Any, path: Path) -> CameraModel:
     """The ``camera`` block of dataset.json."""
     if not isinstance(d, dict):
-        raise DatasetError(path, "'camera' must be an object with image_size, K and dist")
+        raise DatasetError(path, f"'camera' must be an object with image_size, K and dist; "
+                                 f"{_fix(path)}")
     size = _get(d, "image_size", path, "camera.")
     if (not isinstance(size, list) or len(size) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
-        raise DatasetError(path, f"'camera.image_size' must be [width, height], got {size!r}")
+        raise DatasetError(path, f"'camera.image_size' must be [width, height] in pixels, got "
+                                 f"{size!r}; {_fix(path)}")
     K = _matrix(_get(d, "K", path, "camera."), (3, 3), path, "camera.K")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-9:
-        raise DatasetError(path, "'camera.K' must have positive fx, fy and K[2][2] = 1")
+        raise DatasetError(path, f"'camera.K' must have positive fx, fy and K[2][2] = 1, got "
+                                 f"{K.tolist()}; {_fix(path)}")
+    if np.any(K[1:, 0] != 0) or K[2, 1] != 0:  # e.g. written transposed (MATLAB's layout)
+        raise DatasetError(path, f"'camera.K' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got "
+                                 f"{K.tolist()}; is it transposed? {_fix(path)}")
     dist_raw = d.get("dist", [])
-    if not isinstance(dist_raw, list) or len(dist_raw) > 8:
-        raise DatasetError(path, f"'camera.dist' must be a list of up to 5 numbers, got {dist_raw!r}")
+    if not isinstance(dist_raw, list) or len(dist_raw) > 8 or len(dist_raw) == 3:
+        raise DatasetError(path, f"'camera.dist' must be a list of OpenCV's k1, k2, p1, p2[, k3] "
+                                 f"(0, 1, 2, 4 or 5 numbers; p1 needs p2), got {dist_raw!r}; "
+                                 f"{_fix(path)}")
     dvals = _matrix(dist_raw, (len(dist_raw),), path, "camera.dist")
     if len(dvals) > 5 and np.any(dvals[5:] != 0):
-        raise DatasetError(path, "'camera.dist' supports k1, k2, p1, p2, k3 only")
+        raise DatasetError(path, f"'camera.dist' supports k1, k2, p1, p2, k3 only (the rational "
+                                 f"terms k4-k6 must be 0); {_fix(path)}")
     dist = np.zeros(5)
     dist[: min(len(dvals), 5)] = dvals[:5]
     return CameraModel(K, dist, (int(size[0]), int(size[1])), source="dataset.json")
@@ -234,7 +274,8 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
     """
     root = Path(root).resolve()
     if not root.is_dir():
-        raise DatasetError(root, "not a dataset folder (does not exist or is not a directory)")
+        raise DatasetError(root, "not a dataset folder (does not exist or is not a directory); "
+                                 "give the folder holding dataset.json")
     jpath = root / "dataset.json"
     raw = read_json_object(jpath, "missing; every dataset needs dataset.json (see "
                                   "dataset-format.md)", "fix or re-export it")
@@ -250,11 +291,12 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
 
     ld = _get(raw, "lidar", jpath, "")
     if not isinstance(ld, dict):
-        raise DatasetError(jpath, "'lidar' must be an object")
+        raise DatasetError(jpath, f"'lidar' must be an object; {_fix(jpath)}")
     vals = {k: _num(_get(ld, k, jpath, "lidar."), jpath, f"lidar.{k}")
             for k in ("angle_min_deg", "angle_max_deg", "angle_step_deg")}
     if vals["angle_step_deg"] <= 0 or vals["angle_max_deg"] <= vals["angle_min_deg"]:
-        raise DatasetError(jpath, "'lidar' angles must satisfy angle_min < angle_max, step > 0")
+        raise DatasetError(jpath, f"'lidar' angles must satisfy angle_min < angle_max, step > 0; "
+                                  f"{_fix(jpath)}")
     rmin = _num(ld.get("range_min_mm", 0.0), jpath, "lidar.range_min_mm")
     rmax = _num(ld.get("range_max_mm", 1e9), jpath, "lidar.range_max_mm", positive=True)
     if not 0 <= rmin < rmax:
@@ -263,7 +305,7 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
     hint = ld.get("z_axis_hint", list(DEFAULT_Z_AXIS_HINT))
     hint_arr = _matrix(hint, (3,), jpath, "lidar.z_axis_hint")
     if np.linalg.norm(hint_arr) == 0:
-        raise DatasetError(jpath, "'lidar.z_axis_hint' must not be the zero vector")
+        raise DatasetError(jpath, f"'lidar.z_axis_hint' must not be the zero vector; {_fix(jpath)}")
     colour = ld.get("laser_colour", "auto")
     if colour not in LASER_COLOURS:
         raise DatasetError(jpath, f"'lidar.laser_colour' must be one of {', '.join(LASER_COLOURS)}, "
@@ -279,7 +321,7 @@ def load_dataset(root: str | os.PathLike) -> Dataset:
                                                 "intrinsics/*.png views to calibrate from")
 
     image_size = camera.image_size if camera is not None else _image_size_from(root / "board.png")
-    if not (root / "board.png").is_file():
+    if not (root / "board.png").exists():
         raise DatasetError(root / "board.png", "missing; the bright image of the V-board is required")
 
     positions = read_positions(root)
@@ -297,15 +339,20 @@ def _image_size_from(path: Path) -> tuple[int, int]:
 def read_positions(root: Path) -> list[Position]:
     """``positions.csv``: index, psi_deg, stripe_image, scan; >= 3 rows, distinct angles."""
     ppath = root / "positions.csv"
-    if not ppath.is_file():
+    if not ppath.exists():
         raise DatasetError(ppath, "missing; one row per turntable position is required")
     cols = read_csv_columns(ppath, ("index", "psi_deg", "stripe_image", "scan"),
                             "expected header index,psi_deg,stripe_image,scan")
     index = _numeric_column(cols["index"], ppath, "index", allow_empty=False, what="a number")
     psi = _numeric_column(cols["psi_deg"], ppath, "psi_deg", allow_empty=False, what="a number")
+    if np.any(index != np.round(index)):
+        row = int(np.flatnonzero(index != np.round(index))[0])
+        raise DatasetError(ppath, f"row {row + 2}: index {index[row]:g} is not an integer; number "
+                                  "the positions 0, 1, 2, ...")
     for row, (img, scan) in enumerate(zip(cols["stripe_image"], cols["scan"])):
         if not img.strip() or not scan.strip():
-            raise DatasetError(ppath, f"row {row + 2}: empty stripe_image or scan path")
+            raise DatasetError(ppath, f"row {row + 2}: empty stripe_image or scan path; give both "
+                                      "files of every position")
     if len(psi) < 3:
         raise DatasetError(ppath, f"has {len(psi)} position(s); the method needs at least 3")
     for name, vals, what in (("psi_deg", psi, "turntable angles"), ("index", index, "indices")):
@@ -329,7 +376,8 @@ def read_csv_columns(path: Path, required: tuple[str, ...], expected: str,
     """
     text = _read_text(path, gzipped)
     try:
-        rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+        rows = [r for r in csv.reader(io.StringIO(text), delimiter=_delimiter(text))
+                if r and any(c.strip() for c in r)]
     except csv.Error as e:
         raise _unreadable(path, gzipped, e) from None
     if not rows:
@@ -348,6 +396,16 @@ def read_csv_columns(path: Path, required: tuple[str, ...], expected: str,
     return {c: [r[j] if j < len(r) else "" for r in body] for c, j in zip(required, where)}
 
 
+def _delimiter(text: str) -> str:
+    """The CSV's field separator: ``,``; or ``;`` (or a tab) when the header line holds that and
+    no comma (a spreadsheet's export in a decimal-comma locale: its decimal commas are then
+    refused by :func:`_numeric_column`, naming the row)."""
+    head = text.lstrip("\r\n").partition("\n")[0]
+    if "," in head:
+        return ","
+    return ";" if ";" in head else "\t" if "\t" in head else ","
+
+
 def _read_text(path: Path, gzipped: bool = False) -> str:
     """The text of a (gzipped) CSV file, UTF-8 with or without a byte-order mark, line endings
     kept (the csv module reads them); :class:`DatasetError` when it cannot be read."""
@@ -362,17 +420,20 @@ def _read_text(path: Path, gzipped: bool = False) -> str:
 
 
 def _unreadable(path: Path, gzipped: bool, e: Exception) -> DatasetError:
-    return DatasetError(path, f"not a readable {'(gzip) ' if gzipped else ''}CSV "
-                              f"({str(e).splitlines()[0] if str(e) else type(e).__name__})")
+    what = "a folder, not a file" if isinstance(e, IsADirectoryError) else \
+        e.strerror if isinstance(e, OSError) and e.strerror else \
+        str(e).splitlines()[0] if str(e) else type(e).__name__
+    return DatasetError(path, f"not a readable {'(gzip) ' if gzipped else ''}CSV ({what}); "
+                              "copy it again or re-export it")
 
 
 def _measurements(items: Any, root: Path, jpath: Path) -> list[MeasurementSpec]:
     if not isinstance(items, list):
-        raise DatasetError(jpath, "'measurements' must be a list")
+        raise DatasetError(jpath, f"'measurements' must be a list; {_fix(jpath)}")
     out = []
     for i, m in enumerate(items):
         if not isinstance(m, dict) or "sweep" not in m:
-            raise DatasetError(jpath, f"measurements[{i}] needs at least 'sweep'")
+            raise DatasetError(jpath, f"measurements[{i}] needs at least 'sweep'; {_fix(jpath)}")
         ref = m.get("reference_diameter_mm")
         ref = None if ref is None else _num(ref, jpath, f"measurements[{i}].reference_diameter_mm")
         out.append(MeasurementSpec(str(m.get("name", Path(m["sweep"]).name.split(".")[0])),
@@ -401,22 +462,69 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
 
 
 def _decode_8bit(path: Path) -> np.ndarray:
-    """``cv2.imread`` of an 8-bit image as stored (gray or BGR(A)); DatasetError otherwise."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "missing image; copy it again or drop this position")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DatasetError(path, "cannot be decoded as an image (corrupt or not a PNG)")
+    """An 8-bit image as stored (gray or BGR(A)), by :func:`decode_image`; DatasetError
+    otherwise."""
+    img = decode_image(path, fix="copy it again or drop this position")
     if img.dtype != np.uint8:
-        raise DatasetError(path, f"expected an 8-bit image, got {img.dtype}")
+        raise DatasetError(path, f"expected an 8-bit image, got {img.dtype}; save it as an 8-bit "
+                                 "PNG (gray or BGR)")
     return img
+
+
+def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_UNCHANGED,
+                 fix: str = "copy the file again or re-export it") -> np.ndarray:
+    """``cv2.imread(path, flags)``, or :class:`DatasetError` naming ``path``, what is wrong
+    and ``fix`` (what to do): missing, a folder, unreadable, empty, undecodable (corrupt,
+    truncated PNG, not an image) or a truncated JPEG, which ``cv2.imread`` would decode
+    without complaint (libjpeg fills the missing rows with gray)."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(path, f"missing image; {fix}")
+    if not path.is_file():
+        raise DatasetError(path, f"is a folder, not an image file; {fix}")
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(8)
+            f.seek(max(0, size - 64))
+            tail = f.read().rstrip(b"\x00\r\n ")
+    except OSError as e:
+        raise DatasetError(path, f"cannot be read ({e.strerror or e}); check its permissions or "
+                                 f"{fix}") from None
+    if size == 0:
+        raise DatasetError(path, f"is empty (0 bytes); {fix}")
+    # a file cut short (its end marker missing) is refused before libpng prints its own error
+    # or libjpeg decodes the missing rows as gray
+    for kind, magic, end in (("JPEG", b"\xff\xd8", b"\xff\xd9"),
+                             ("PNG", b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82")):
+        if head.startswith(magic) and not tail.endswith(end) and not _whole_image(path):
+            raise DatasetError(path, f"{kind} cut short (its end marker is missing: truncated "
+                                     f"copy or recording); {fix}")
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise DatasetError(path, f"cannot be decoded as an image (corrupt, truncated or not an "
+                                 f"image file); {fix}")
+    return img
+
+
+def _whole_image(path: Path) -> bool:
+    """Whether Pillow decodes the whole image (a JPEG or PNG with data after its end marker,
+    e.g. a phone's motion photo, is whole; a truncated one raises)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            im.load()
+    except (OSError, SyntaxError, ValueError):
+        return False
+    return True
 
 
 def _checked_size(img: np.ndarray, path: Path, image_size: tuple[int, int] | None) -> np.ndarray:
     if image_size is not None and (img.shape[1], img.shape[0]) != tuple(image_size):
         raise DatasetError(Path(path), f"image is {img.shape[1]}x{img.shape[0]}, expected "
-                                 f"{image_size[0]}x{image_size[1]} (camera.image_size)")
+                                 f"{image_size[0]}x{image_size[1]} (camera.image_size); give "
+                                 "the camera's full, unscaled image")
     return img
 
 
@@ -555,7 +663,8 @@ def read_scan(path: Path, lidar: LidarSpec | None = None) -> tuple[np.ndarray, n
         cols = read_csv_columns(path, ("angle_deg", "range_mm"),
                                 "expected header angle_deg,range_mm")
         if not cols["angle_deg"]:
-            raise DatasetError(path, "scan has no rows")
+            raise DatasetError(path, "scan has no rows (a header only); copy it again or drop this "
+                                 "position")
         ang = _numeric_column(cols["angle_deg"], path, "angle_deg", allow_empty=False)
         rng = _ranges(cols["range_mm"], path, lidar)
     if np.any(np.diff(ang) <= 0):
@@ -624,6 +733,10 @@ def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
         row = int(np.flatnonzero(rng < 0)[0])
         raise DatasetError(path, f"row {row + 2}: negative range {rng[row]:g}; ranges must be >= 0")
     no_return = rng == 0
+    if np.count_nonzero(~no_return) >= 10 and np.max(rng[~no_return]) < MIN_PLAUSIBLE_RANGE_MM:
+        raise DatasetError(path, f"every return is below {MIN_PLAUSIBLE_RANGE_MM:g} (largest "
+                                 f"{np.max(rng[~no_return]):g}); are the ranges in metres? "
+                                 "range_mm must be millimetres (multiply by 1000)")
     if lidar is not None:
         outside = (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
         # a whole scan outside the limits is a unit problem, not a scene (10: not a stray beam)
@@ -649,8 +762,9 @@ def _numeric_column(text: list[str], path: Path, name: str, allow_empty: bool,
     bad = ~np.isfinite(vals)
     if np.any(bad):
         row = int(np.flatnonzero(bad)[0])
+        comma = ": a decimal comma? write '.'" if "," in text[row] else ""
         raise DatasetError(path, f"row {row + 2}: '{name}' is not {what} "
-                                 f"({text[row]!r}); fix or re-export the file")
+                                 f"({text[row]!r}{comma}); fix or re-export the file")
     return vals
 
 
@@ -668,7 +782,9 @@ def read_sweep(path: Path, lidar: LidarSpec | None = None):
 
     path = Path(path)
     if not path.is_file():
-        raise DatasetError(path, "missing sweep file listed in dataset.json 'measurements'")
+        raise DatasetError(path, ("is a folder, not a sweep file" if path.is_dir() else
+                                  "missing sweep file listed in dataset.json 'measurements'")
+                           + "; copy it again or remove it from 'measurements'")
     need = ("psi_deg", "angle_deg", "range_mm")
     try:  # fast path: pandas' C parser; only an empty field reads as NaN (= no return)
         df = pd.read_csv(path, usecols=list(need), keep_default_na=False, na_values=[""])
@@ -684,6 +800,9 @@ def read_sweep(path: Path, lidar: LidarSpec | None = None):
         psi = _numeric_column(cols["psi_deg"], path, "psi_deg", allow_empty=False)
         ang = _numeric_column(cols["angle_deg"], path, "angle_deg", allow_empty=False)
         rng = _ranges(cols["range_mm"], path, lidar)
+    if len(psi) == 0:
+        raise DatasetError(path, "holds no rows (a header only); record the sweep again or remove "
+                                 "it from dataset.json 'measurements'")
     return pd.DataFrame({"psi_deg": psi, "angle_deg": ang, "range_mm": rng})
 
 
@@ -692,7 +811,7 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], object],
     """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``
     (never half-written; the temporary file is removed on any error). ``suffix``: the
     temporary file's (default ``path``'s own, for writers that infer the format from it)."""
-    path = Path(path)
+    path = check_output(path, "file")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix if suffix is None
                                else suffix, dir=path.parent)
@@ -704,6 +823,25 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], object],
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return path
+
+
+def check_output(path: str | os.PathLike, kind: str) -> Path:
+    """``path`` as an output ``kind`` ("file" or "folder"), refused before anything is computed
+    or written: a folder where a file is to be written, a file where a folder is, or a file
+    in the way of its parent folders (:class:`DatasetError` naming it)."""
+    path = Path(path)
+    if kind == "file" and path.is_dir():
+        raise DatasetError(path, "is a folder, expected an output file; give the file's path")
+    if kind == "folder" and path.exists() and not path.is_dir():
+        raise DatasetError(path, "is a file, expected an output folder; give a folder (it is "
+                                 "created when missing)")
+    for parent in path.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise DatasetError(parent, "is a file, not a folder, so nothing can be written "
+                                           f"under it ({path}); choose another output path")
+            break
     return path
 
 

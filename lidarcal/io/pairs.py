@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError, read_csv_columns, read_scan
+from .dataset import DatasetError, _delimiter, _ranges, read_csv_columns, read_scan
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -41,13 +41,18 @@ def read_scan_any(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "missing scan; every photo needs NAME.csv beside it")
-    with open(path, encoding="utf-8-sig", errors="replace") as f:
-        header = [h.strip() for h in f.readline().split(",")]
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as f:
+            first = f.readline()
+    except OSError as e:
+        raise DatasetError(path, f"cannot be read ({e.strerror or e}); copy it again or re-export "
+                                 "it") from None
+    header = [h.strip() for h in first.split(_delimiter(first))]
     if "angle_deg" in header and "range_mm" in header:
         return read_scan(path)
     if not ("x_mm" in header and "y_mm" in header):
         raise DatasetError(path, f"header {','.join(header)!r}: expected columns angle_deg,range_mm "
-                                 "or x_mm,y_mm")
+                                 "or x_mm,y_mm; re-export the scan with one of these headers")
     cols = read_csv_columns(path, ("x_mm", "y_mm"), "expected header x_mm,y_mm")
     vals = []
     for name in ("x_mm", "y_mm"):
@@ -66,9 +71,9 @@ def read_scan_any(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     x, y = vals
     keep = (x != 0) | (y != 0)
     if np.count_nonzero(keep) < 2:
-        raise DatasetError(path, "scan has fewer than 2 returns")
+        raise DatasetError(path, "scan has fewer than 2 returns; check the file")
     ang = np.degrees(np.arctan2(y[keep], x[keep]))
-    rng = np.hypot(x[keep], y[keep])
+    rng = _ranges([], path, None, np.hypot(x[keep], y[keep]))  # the unit check
     order = np.argsort(ang, kind="stable")
     ang, rng = ang[order], rng[order]
     if np.any(np.diff(ang) <= 0):
@@ -104,7 +109,8 @@ def read_view_pairs(folder: str | Path) -> list[ViewPair]:
         raise DatasetError(scans[lonely_scan[0]], f"scan without its photo {lonely_scan[0]}.png; "
                                                   "add the photo or remove the scan")
     if not images:
-        raise DatasetError(folder, "holds no NAME.png|jpg + NAME.csv pairs")
+        raise DatasetError(folder, "holds no NAME.png|jpg + NAME.csv pairs; put each photo beside "
+                                   "its scan, under the same name")
     out = []
     for name in sorted(images):
         ang, rng = read_scan_any(scans[name])
@@ -127,6 +133,9 @@ def board_spec(folder: str | Path, pattern: tuple[int, int] | None = None,
         if square_mm <= 0:
             raise DatasetError(Path(folder), f"square size must be positive, got {square_mm:g}")
         return BoardSpec(tuple(pattern), float(square_mm))
+    if not Path(folder).is_dir():
+        raise DatasetError(Path(folder), "not a folder; expected a folder of NAME.png + NAME.csv "
+                                         "pairs")
     path = Path(folder) / BOARD_JSON
     fix = 'write {"inner_corners": [8, 5], "square_mm": 100} there (the board\'s inner corners ' \
           'and square side, mm) or give --pattern and --square-mm'

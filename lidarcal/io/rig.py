@@ -48,8 +48,17 @@ def _finite(v, path: Path, key: str) -> float:
 
 
 def read_rig(path: str | os.PathLike) -> RigFile:
-    """Read and check RIG.json (format in ``docs/ros-bags.md``)."""
-    path = Path(path)
+    """Read and check RIG.json (format in ``docs/ros-bags.md``); every problem is a
+    :class:`DatasetError` naming it and saying what to do."""
+    try:
+        return _read_rig(Path(path))
+    except DatasetError as e:
+        if ";" in e.problem:
+            raise
+        raise DatasetError(e.path, f"{e.problem}; fix RIG.json (see docs/ros-bags.md)") from None
+
+
+def _read_rig(path: Path) -> RigFile:
     raw = read_json_object(path, "missing rig file; write RIG.json (see docs/ros-bags.md)",
                            "fix it", " (see docs/ros-bags.md)")
     base: dict = {}

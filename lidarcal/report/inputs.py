@@ -9,7 +9,14 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from ..io.dataset import Dataset, DatasetError, load_dataset, read_json_object
+from ..io.dataset import (
+    CALIBRATION_FORMAT,
+    MEASUREMENTS_FORMAT,
+    Dataset,
+    DatasetError,
+    load_dataset,
+    read_json_object,
+)
 
 
 @dataclass
@@ -29,14 +36,22 @@ class ReportInputs:
                          .strftime("%Y-%m-%d %H:%M UTC"))
 
 
-def _read_json(path: Path, what: str, fmt_prefix: str) -> dict:
+def _read_json(path: Path, what: str, fmt: str) -> dict:
+    """``what`` (calibration.json, measurements.json) of format ``fmt`` exactly; a calibration's
+    pose function is read too (:func:`lidarcal.api.load_calibration`), so a broken one is
+    refused here rather than drawn."""
     p = Path(path)
     if p.is_dir():
         p = p / what
-    data = read_json_object(p, f"missing; give the {what} written by lidarcal",
-                            f"give the {what} written by lidarcal", f" (a {fmt_prefix} file)")
-    if not str(data.get("format", "")).startswith(fmt_prefix):
-        raise DatasetError(p, f"is not a {fmt_prefix} file (format {data.get('format')!r})")
+    fix = f"give the {what} written by lidarcal"
+    data = read_json_object(p, f"missing; {fix}", fix, f" (a {fmt} file); {fix}")
+    if data.get("format") != fmt:
+        raise DatasetError(p, f"format {data.get('format')!r}, expected '{fmt}'; {fix} (another "
+                              "version: run that lidarcal's command again with this one)")
+    if fmt == CALIBRATION_FORMAT:
+        from ..api import load_calibration
+
+        load_calibration(p)
     return data
 
 
@@ -64,10 +79,10 @@ def gather_inputs(dataset: str | os.PathLike | Dataset, calibration: str | os.Pa
             table = pipeline.measure_dataset(ds.root, calibration)
             measurements = pipeline.write_measurements(table, tmp, ds.root)
     cal_path = Path(calibration)
-    cal = _read_json(cal_path, "calibration.json", "lidarcal-calibration/")
+    cal = _read_json(cal_path, "calibration.json", CALIBRATION_FORMAT)
     meas = None
     if measurements is not None:
-        meas = _read_json(Path(measurements), "measurements.json", "lidarcal-measurements/")
+        meas = _read_json(Path(measurements), "measurements.json", MEASUREMENTS_FORMAT)
     return ReportInputs(ds, cal, meas, ds.truth(), result, command,
                         cal_path if cal_path.is_file() else cal_path / "calibration.json",
                         None if measurements is None else Path(measurements))
