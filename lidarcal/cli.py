@@ -622,6 +622,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             traceback.print_exc()
         msg = " ".join(str(e).split())
+        if isinstance(e, OSError) and e.filename and e.strerror:  # the file first, as above
+            msg = f"{e.filename}: {e.strerror}; check the path and its permissions"
         print(f"error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -377,6 +377,15 @@ def _(tmp, how):
     return argv, "dataset.json", w
 
 
+@case("calibrate-dataset.json-camera-image_size_mismatch")
+def _(tmp):
+    """dataset.json's image_size is not board.png's: board.png is named (with the size)."""
+    ds, _ = rig_copy(tmp)
+    edit_json(ds / "dataset.json", lambda d: break_camera(d["camera"], "image_size mismatch"))
+    argv, w = _calibrate(tmp, ds)
+    return argv, "board.png", w
+
+
 @_many("calibrate-dataset.json-field", [
     "lidar.angle_step string", "v_board.square_mm string", "v_board.inner_corners too large",
     "v_board.inner_corners 1", "lidar missing", "v_board missing", "measurements not a list",
@@ -1247,14 +1256,18 @@ def test_calibrate_skips_one_bad_scan(tmp_path, cli, how):
 
 @pytest.mark.parametrize("how", ["BOM", "CRLF", "semicolons", "nan and inf"])
 def test_calibrate_reads_tolerated_scan_spellings(tmp_path, cli, how):
-    """BOM, CRLF, ';' with '.' decimals, nan/inf no-returns: every position used."""
+    """BOM, CRLF, ';' with '.' decimals, nan/inf no-returns: every position used. (The output
+    folder held another file: calibrate writes its own files there, the other is kept.)"""
     ds, _ = rig_copy(tmp_path, n=4, sweeps=0)
     for f in sorted((ds / "scans").iterdir()):
         tolerated_scan(f, how)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "notes.txt").write_text("mine\n")
     p = cli("calibrate", ds, "--out", tmp_path / "out", "--method", "rigid")
     assert_accepted(p)
     cal = json.loads((tmp_path / "out" / "calibration.json").read_text())
     assert not cal.get("skipped")
+    assert (tmp_path / "out" / "notes.txt").read_text() == "mine\n"
 
 
 def test_positions_csv_with_bom_crlf_absolute_and_outside_paths(tmp_path, cli):

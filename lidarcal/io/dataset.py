@@ -498,8 +498,8 @@ def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_UNCHANGED,
     for kind, magic, end in (("JPEG", b"\xff\xd8", b"\xff\xd9"),
                              ("PNG", b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82")):
         if head.startswith(magic) and not tail.endswith(end) and not _whole_image(path):
-            raise DatasetError(path, f"{kind} cut short (its end marker is missing: truncated "
-                                     f"copy or recording); {fix}")
+            raise DatasetError(path, f"cannot be decoded: {kind} cut short (its end marker is "
+                                     f"missing: a truncated copy or recording); {fix}")
     img = cv2.imread(str(path), flags)
     if img is None:
         raise DatasetError(path, f"cannot be decoded as an image (corrupt, truncated or not an "
@@ -733,18 +733,20 @@ def _ranges(text: list[str], path: Path, lidar: LidarSpec | None,
         row = int(np.flatnonzero(rng < 0)[0])
         raise DatasetError(path, f"row {row + 2}: negative range {rng[row]:g}; ranges must be >= 0")
     no_return = rng == 0
-    if np.count_nonzero(~no_return) >= 10 and np.max(rng[~no_return]) < MIN_PLAUSIBLE_RANGE_MM:
-        raise DatasetError(path, f"every return is below {MIN_PLAUSIBLE_RANGE_MM:g} (largest "
-                                 f"{np.max(rng[~no_return]):g}); are the ranges in metres? "
-                                 "range_mm must be millimetres (multiply by 1000)")
+    outside = np.zeros(rng.shape, bool)
     if lidar is not None:
         outside = (rng < lidar.range_min_mm) | (rng > lidar.range_max_mm)
         # a whole scan outside the limits is a unit problem, not a scene (10: not a stray beam)
         if np.all(outside | no_return) and np.count_nonzero(~no_return) >= 10:
             raise DatasetError(path, f"every return is outside range_min_mm..range_max_mm "
                                      f"({lidar.range_min_mm:g}..{lidar.range_max_mm:g}; median range "
-                                     f"{np.median(rng[~no_return]):g}); ranges must be in mm")
-        no_return |= outside
+                                     f"{np.median(rng[~no_return]):g}); ranges must be in mm "
+                                     "(metres: multiply by 1000), else fix dataset.json's limits")
+    if np.count_nonzero(~no_return) >= 10 and np.max(rng[~no_return]) < MIN_PLAUSIBLE_RANGE_MM:
+        raise DatasetError(path, f"every return is below {MIN_PLAUSIBLE_RANGE_MM:g} (largest "
+                                 f"{np.max(rng[~no_return]):g}); are the ranges in metres? "
+                                 "range_mm must be millimetres (multiply by 1000)")
+    no_return |= outside
     rng[no_return] = np.nan
     return rng
 
