@@ -245,8 +245,8 @@ def break_camera(d: dict, how: str) -> None:
         d["K"] = np.array(d["K"], float).T.tolist()
     elif how == "K 2x2":
         d["K"] = [r[:2] for r in d["K"][:2]]
-    elif how == "dist of 3":
-        d["dist"] = (list(d["dist"]) + [0.0] * 5)[:3]
+    elif how == "dist rational":
+        d["dist"] = (list(d["dist"]) + [0.0] * 5)[:5] + [0.1, 0.0, 0.0]
     elif how == "dist string":
         d["dist"] = "0 0 0 0 0"
     elif how == "image_size mismatch":
@@ -350,7 +350,7 @@ SCAN_BREAKS = FILE_BREAKS + ["binary", "wrong header", "missing column", "non-nu
                              "semicolons, decimal commas", "extra field", "header only"]
 JSON_BREAKS = FILE_BREAKS + ["invalid", "not an object"]
 CAMERA_BREAKS = ["K string", "K negative focal", "K singular", "K transposed", "K 2x2",
-                 "dist of 3", "dist string", "image_size missing", "K missing"]
+                 "dist rational", "dist string", "image_size missing", "K missing"]
 
 
 # calibrate: what test_cli.py does not cover (dataset.json, board.png, positions.csv details;
@@ -742,10 +742,10 @@ def _(tmp):
 
 # check: an unreadable dataset is exit 2 (a position's problems are exit 1, below)
 
-@_many("check-dataset.json", ["missing", "invalid", "K string", "dist of 3"])
+@_many("check-dataset.json", ["missing", "invalid", "K string", "dist rational"])
 def _(tmp, how):
     ds, _ = rig_copy(tmp, sweeps=0)
-    if how in ("K string", "dist of 3"):
+    if how in ("K string", "dist rational"):
         edit_json(ds / "dataset.json", lambda d: break_camera(d["camera"], how))
     else:
         break_json(ds / "dataset.json", how)
@@ -1149,7 +1149,7 @@ def _bag_without_scans(src: Path, dst: Path) -> None:
 
 for _how in ["truncated bag", "empty bag", "text bag", "no LaserScan", "out is a file",
              "out not empty", "board image truncated"] + [
-        f"RIG.json {w}" for w in JSON_BREAKS + ["K string", "dist of 3", "K transposed",
+        f"RIG.json {w}" for w in JSON_BREAKS + ["K string", "dist rational", "K transposed",
                                                 "image_size mismatch", "no v_board",
                                                 "z hint string", "intrinsics folder missing",
                                                 "dataset.json instead"]]:

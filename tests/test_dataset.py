@@ -46,6 +46,16 @@ def make_dataset(root: Path, n: int = 3, meta: dict | None = None) -> Path:
     return root
 
 
+@pytest.mark.parametrize("dist", [[], [-0.1], [-0.1, 0.05, 0.001], [-0.1, 0.05, 0.001, -0.002],
+                                  [-0.1, 0.05, 0.001, -0.002, 0.01, 0.0, 0.0, 0.0]])
+def test_a_shorter_dist_means_the_rest_are_zero(tmp_path, dist):
+    """The contract: camera.dist is k1, k2, p1, p2, k3; a shorter list means the rest are 0."""
+    meta = json.loads(json.dumps(DATASET_JSON))
+    meta["camera"]["dist"] = dist
+    ds = load_dataset(make_dataset(tmp_path / "ds", meta=meta))
+    np.testing.assert_array_equal(ds.camera.dist, (dist + [0.0] * 5)[:5])
+
+
 def test_reads_a_valid_dataset(tmp_path):
     ds = load_dataset(make_dataset(tmp_path / "ds"))
     assert ds.camera is not None and ds.camera.image_size == (64, 48)

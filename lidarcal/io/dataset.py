@@ -242,9 +242,9 @@ def parse_camera(d: Any, path: Path) -> CameraModel:
         raise DatasetError(path, f"'camera.K' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got "
                                  f"{K.tolist()}; is it transposed? {_fix(path)}")
     dist_raw = d.get("dist", [])
-    if not isinstance(dist_raw, list) or len(dist_raw) > 8 or len(dist_raw) == 3:
+    if not isinstance(dist_raw, list) or len(dist_raw) > 8:
         raise DatasetError(path, f"'camera.dist' must be a list of OpenCV's k1, k2, p1, p2[, k3] "
-                                 f"(0, 1, 2, 4 or 5 numbers; p1 needs p2), got {dist_raw!r}; "
+                                 f"(up to 5 numbers, the missing ones 0), got {dist_raw!r}; "
                                  f"{_fix(path)}")
     dvals = _matrix(dist_raw, (len(dist_raw),), path, "camera.dist")
     if len(dvals) > 5 and np.any(dvals[5:] != 0):
