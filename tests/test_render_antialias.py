@@ -3,9 +3,17 @@ corners that board.png then shows (render.subpixel_offsets)."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
+from lidarcal.board import find_v_boards
+from lidarcal.io.dataset import BoardSpec, CameraModel, read_image
+from lidarcal.synthetic import make_truth, project_points
+from lidarcal.synthetic.config import WIDE
 from lidarcal.synthetic.render import (
     RayMap,
     albedo_table,
@@ -14,6 +22,7 @@ from lidarcal.synthetic.render import (
     subpixel_offsets,
 )
 from lidarcal.synthetic.scene import WALL, WHITE, InfinitePlane, Rect
+from lidarcal.synthetic.truth import STREAM_BOARD_IMAGE, _rng
 
 N_SUB = 4
 SIZE = 48
@@ -34,16 +43,10 @@ def _rendered_edge_px(edge_px: float, axis: int, pattern: str) -> np.ndarray:
     board = Rect(np.array([0.0, 0.0, Z]) - far * u + (e - far) * v, u, v, 2 * far, far,
                  plain=WHITE)
     wall = InfinitePlane(np.array([0.0, 0.0, 1.0]), 2 * Z)
-    table = albedo_table(_rig(), "bright")
+    table = albedo_table(WIDE, "bright")
     alb = render_view(rays, [board, wall], table, N_SUB, pattern).albedo.astype(float)
     a = table[WALL]
     return ((alb - a) / (1.0 - a)).sum(axis=axis) - 0.5
-
-
-def _rig():
-    from lidarcal.synthetic.config import WIDE
-
-    return WIDE
 
 
 @pytest.mark.parametrize("axis", [0, 1])
@@ -81,12 +84,7 @@ def test_wide_board_png_corners_against_truth() -> None:
     the true projections. With the regular grid the corner rows nearest the horizon (their
     square edges along the pixel rows) were 0.08-0.10 px off and board 0 0.030 px rms;
     multi-jittered: 0.008 px rms on both boards (measured), as with 16 x 16 grid samples."""
-    from lidarcal.board import find_v_boards
-    from lidarcal.io.dataset import BoardSpec, CameraModel
-    from lidarcal.synthetic import make_truth, project_points
-    from lidarcal.synthetic.truth import STREAM_BOARD_IMAGE, _rng
-
-    rig = _rig().with_(antialias="multi-jittered", n_positions=3)
+    rig = WIDE.with_(antialias="multi-jittered", n_positions=3)
     truth = make_truth(37, rig, with_discs=False, with_intrinsics=False)
     cam = CameraModel(np.asarray(truth.K, float), np.asarray(truth.dist, float), rig.image_size)
     spec = BoardSpec(tuple(rig.v_inner_corners), rig.v_square_mm)
@@ -108,30 +106,22 @@ def test_cli_simulate_antialias_and_range_noise(tmp_path) -> None:
     """``lidarcal simulate OUT --rig wide --antialias multi-jittered --range-noise-mm 0.5``: the
     low-scan-noise wide variant (issue 13's camera-side study) from the command line; truth.json
     records both, and board.png is the one the multi-jittered pattern renders."""
-    import json
-    import subprocess
-    import sys
-
-    from lidarcal.io.dataset import read_image
-    from lidarcal.synthetic.truth import STREAM_BOARD_IMAGE, _rng
-
     out = tmp_path / "w"
     r = subprocess.run([sys.executable, "-m", "lidarcal", "simulate", str(out), "--rig", "wide",
                         "--seed", "2", "--positions", "3", "--no-sweeps", "--no-intrinsics",
                         "--antialias", "multi-jittered", "--range-noise-mm", "0.5"],
-                       capture_output=True, text=True)
+                       check=False, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     noise = json.loads((out / "truth.json").read_text())["noise"]
     assert noise["range_noise_mm"] == 0.5
     assert noise["antialias"] == "multi-jittered" and noise["supersample"] == 4
-    from lidarcal.synthetic import make_truth
-
-    rig = _rig().with_(antialias="multi-jittered", n_positions=3)
+    rig = WIDE.with_(antialias="multi-jittered", n_positions=3)
     truth = make_truth(2, rig, with_discs=False, with_intrinsics=False)
     rays = RayMap.build(truth.K, truth.dist, rig.image_size)
     img = expose_bright(render_view(rays, truth.surfaces, albedo_table(rig, "bright"), 4,
                                     "multi-jittered").albedo, rig, _rng(2, STREAM_BOARD_IMAGE))
     assert np.array_equal(read_image(out / "board.png"), img)
     bad = subprocess.run([sys.executable, "-m", "lidarcal", "simulate", str(tmp_path / "x"),
-                          "--antialias", "random"], capture_output=True, text=True)
+                          "--antialias", "random"], check=False, capture_output=True,
+                         text=True)
     assert bad.returncode == 2 and "invalid choice" in bad.stderr
