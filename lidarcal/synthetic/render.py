@@ -256,7 +256,9 @@ def smooth_field(shape: tuple[int, int], corr_px: float, rng: np.random.Generato
 def stripe_signal(rays: RayMap, view: SceneView, surfaces: list, pose: Pose, rig: RigConfig,
                   sheet_sigma_mm: float, r_ref_mm: float, rng: np.random.Generator,
                   modulation: np.ndarray | None = None, n_sub: int = 3) -> np.ndarray:
-    """Laser-stripe irradiance (DN, before blur and noise) of one position; see module docstring."""
+    """Laser-stripe irradiance (DN, before blur and noise) of one position; see module docstring.
+    The ``n_sub x n_sub`` samples per pixel sit as ``rig.antialias`` places them
+    (:func:`subpixel_offsets`)."""
     h, w = view.surface.shape
     n = pose.z_axis.astype(np.float32)
     d = np.float32(n @ pose.T)
@@ -276,7 +278,7 @@ def stripe_signal(rays: RayMap, view: SceneView, surfaces: list, pose: Pose, rig
     if len(cand) == 0:
         return out.reshape(h, w)
     S = n_sub * n_sub
-    sd = rays.sub_dirs(cand, n_sub)                                  # (C, S, 3)
+    sd = rays.sub_dirs(cand, n_sub, rig.antialias)                   # (C, S, 3)
     sc = view.surface.ravel()[cand]
     t = np.empty(sd.shape[:2])
     idx = np.repeat(sc[:, None], S, axis=1).astype(np.int16)
