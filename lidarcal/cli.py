@@ -152,6 +152,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="returns from black squares read this much farther (default 0)")
     s.add_argument("--range-quantum-mm", type=_non_negative, default=0.0,
                    help="round ranges to multiples of this, e.g. 1 (default 0: not quantised)")
+    s.add_argument("--range-noise-mm", type=_non_negative, default=None,
+                   help="LiDAR range noise, 1 sigma (default: the rig's)")
+    s.add_argument("--antialias", choices=["grid", "multi-jittered"], default=None,
+                   help="sub-pixel samples of the images' edges: grid (default; edges along the "
+                        "pixel rows rendered up to 1/8 px off) or multi-jittered")
 
     s = sub.add_parser("import", help="turn a ROS 1 / ROS 2 bag into a dataset folder")
     s.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder (sqlite3, mcap)")
@@ -297,6 +302,10 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     if a.range_offset_mm or a.dark_extra_mm or a.range_quantum_mm:
         rig = rig.with_(range_offset_mm=a.range_offset_mm, dark_extra_mm=a.dark_extra_mm,
                         range_quantum_mm=a.range_quantum_mm)
+    if a.range_noise_mm is not None:
+        rig = rig.with_(range_noise_mm=a.range_noise_mm)
+    if a.antialias is not None:
+        rig = rig.with_(antialias=a.antialias)
     path = simulate(a.out, seed=a.seed, rig=rig, n_positions=a.positions,
                     with_sweeps=not a.no_sweeps, overwrite=a.overwrite,
                     with_intrinsics=False if a.no_intrinsics else None)

@@ -3,8 +3,9 @@
 Three tables, each against truth (the true camera and the true board poses of truth.json):
 
 1. corners: detected chessboard corners against the true projections, on board.png (both
-   boards of the V) and on the intrinsics photos: RMS (px) and bias (mean dx, dy, px) of
-   lidarcal's detector (and the saddle points of :func:`lidarcal.camera.saddle_corners`
+   boards of the V) and on the intrinsics photos: RMS (px) and bias (mean dx, dy, px) of the
+   corners ``calibrate`` uses ("lidarcal final": ``find_v_boards`` with the true camera,
+   ``calibrate_intrinsics``), of lidarcal's detector (and the saddle points of :func:`lidarcal.camera.saddle_corners`
    from its corners, the V boards' sub-pixel candidate) beside plain OpenCV
    (``findChessboardCorners`` + ``cornerSubPix`` with fixed windows;
    ``findChessboardCornersSB`` with and without ``CALIB_CB_ACCURACY``);
@@ -133,8 +134,22 @@ def corner_table(path: Path, truth: dict, ds) -> pd.DataFrame:
         for name, f in detectors(pat_v).items():
             e = match_error(f(img), tp)
             rows.append({"image": "board.png", "view": b, "method": name, "err": e})
+    # what calibrate uses: find_v_boards' corners (sharpest + point symmetry), true camera
+    for v in find_v_boards(read_image(ds.board_image, ds.image_size), ds.v_board, tcam):
+        tb = [project_points(tcam, np.asarray(b["inner_corners_mm"], float))
+              for b in truth["boards"]]
+        k = int(np.argmin([np.linalg.norm(t.mean(0) - v.corners_px.mean(0)) for t in tb]))
+        rows.append({"image": "board.png", "view": k, "method": "lidarcal final",
+                     "err": match_error(v.corners_px, tb[k])})
     if ds.intrinsics_board is not None and truth.get("intrinsics_views"):
         pat_i = ds.intrinsics_board.pattern_size
+        # what calibrate uses: calibrate_intrinsics' corners (sharpest + point symmetry)
+        res = calibrate_intrinsics(ds.intrinsics_images(), ds.intrinsics_board, ds.image_size)
+        for p, q in zip(res.files_used, res.image_points):
+            k = list(ds.intrinsics_images()).index(p)
+            tp = true_intrinsics_corners(truth, tcam, k, pat_i, ds.intrinsics_board.square_mm)
+            rows.append({"image": "intrinsics", "view": k, "method": "lidarcal final",
+                         "err": match_error(q, tp)})
         for k, p in enumerate(ds.intrinsics_images()):
             img = read_image(p)
             g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img

@@ -77,6 +77,10 @@ class RigConfig:
     read_noise_dn: float = 0.25                    # 8-bit output of a 12-bit sensor: small
     shot_noise_gain: float = 0.03                  # variance per DN of signal
     supersample: int = 4                           # n x n samples on edge pixels
+    # where those samples sit: "grid" (regular; an edge along the pixel rows or columns is
+    # rendered up to 1/(2n) px off) or "multi-jittered" (n^2 distinct rows and columns;
+    # render.subpixel_offsets)
+    antialias: str = "grid"
     # --- nuisances (harsh) ---
     speckle_contrast: float = 0.0                  # std of log-intensity of the laser speckle
     speckle_corr_px: float = 1.5

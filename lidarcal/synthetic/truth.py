@@ -32,6 +32,13 @@ def _footprint_truth(rig: RigConfig) -> dict:
     return {"footprint_model": rig.footprint_model, "echo_threshold": rig.echo_threshold}
 
 
+def _antialias_truth(rig: RigConfig) -> dict:
+    """The images' anti-aliasing in truth.json (only when it is not the default grid)."""
+    if rig.antialias == "grid":
+        return {}
+    return {"antialias": rig.antialias, "supersample": rig.supersample}
+
+
 def _rng(seed: int, stream: int, index: int = 0) -> np.random.Generator:
     return np.random.default_rng([int(seed), stream, int(index)])
 
@@ -217,7 +224,7 @@ class RigTruth:
                       "mixed_dominant": rig.mixed_dominant, "spurious_rate": rig.spurious_rate,
                       "drop_rate": rig.drop_rate, "read_noise_dn": rig.read_noise_dn,
                       "bright_noise_dn": rig.bright_noise_dn, "psf_sigma_px": rig.psf_sigma_px,
-                      **_footprint_truth(rig)},
+                      **_footprint_truth(rig), **_antialias_truth(rig)},
             "intrinsics_views": [v.to_dict() for v in self.intrinsics_views],
             "measurements": [d.to_dict() for d in self.discs],
             **ranging_truth(rig),

@@ -142,7 +142,8 @@ def simulate(out: str | Path, seed: int = 0, rig: str | RigConfig = "paper", *,
     _prepare(out, overwrite)
 
     rays = RayMap.build(truth.K, truth.dist, rig.image_size)
-    view = render_view(rays, truth.surfaces, albedo_table(rig, "bright"), rig.supersample)
+    view = render_view(rays, truth.surfaces, albedo_table(rig, "bright"), rig.supersample,
+                       rig.antialias)
     _write_png(out / "board.png", expose_bright(view.albedo, rig, _rng(seed, STREAM_BOARD_IMAGE)))
 
     # stripes and scans
@@ -172,7 +173,7 @@ def simulate(out: str | Path, seed: int = 0, rig: str | RigConfig = "paper", *,
         for j, v in enumerate(truth.intrinsics_views):
             z_back = float(v.board.origin[2]) + 600.0
             wall = InfinitePlane(np.array([0.0, 0.0, 1.0]), z_back)
-            iv = render_view(rays, [v.board, wall], table, rig.supersample)
+            iv = render_view(rays, [v.board, wall], table, rig.supersample, rig.antialias)
             img = expose_bright(iv.albedo, rig, _rng(seed, STREAM_INTRINSICS_IMAGE, j))
             _write_png(out / "intrinsics" / f"view_{j + 1:02d}.png", img)
 
