@@ -663,7 +663,29 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     b5, b95 = np.percentile(ball, [5, 95])
     if b95 - b5 < min_contrast:
         return None
-    grid = np.linspace(0.02, 1.0, 99)
+    return grid_minimum(RATIO_GRID, ratio_costs(groups, RATIO_GRID))
+
+
+def grid_minimum(grid: np.ndarray, cost: np.ndarray) -> float:
+    """The minimum of ``cost`` over the evenly spaced ``grid``, refined by a parabola through
+    the lowest point and its neighbours (a step of at most one grid spacing)."""
+    i = int(np.argmin(cost))
+    if 0 < i < len(grid) - 1:  # parabolic refinement
+        c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
+        den = c0 - 2 * c1 + c2
+        step = 0.5 * (c0 - c2) / den if den > 0 else 0.0
+        return float(grid[i] + np.clip(step, -1, 1) * (grid[1] - grid[0]))
+    return float(grid[i])
+
+
+#: the grid of black/white reflectance ratios :func:`reflectance_ratio` searches
+RATIO_GRID = np.linspace(0.02, 1.0, 99)
+
+
+def ratio_costs(groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                grid: np.ndarray = RATIO_GRID) -> np.ndarray:
+    """The L1 cost of :func:`reflectance_ratio`'s model at each ratio of ``grid`` (summed over
+    the stripes ``groups``: ``(x, mass, blackness)``, at least a few samples each)."""
     cost = np.zeros(len(grid))
     for x, m, b in groups:
         ok = m > 0
@@ -683,13 +705,7 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
         rhs = _times(A.T, w * Y).T
         coef = np.linalg.solve(M, rhs[:, :, None])[:, :, 0]
         cost += np.abs(Y - _times(A, coef.T)).sum(0)
-    i = int(np.argmin(cost))
-    if 0 < i < len(grid) - 1:  # parabolic refinement
-        c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
-        den = c0 - 2 * c1 + c2
-        step = 0.5 * (c0 - c2) / den if den > 0 else 0.0
-        return float(grid[i] + np.clip(step, -1, 1) * (grid[1] - grid[0]))
-    return float(grid[i])
+    return cost
 
 
 def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -172,7 +172,7 @@ def occlude_stripe(share: float) -> Perturb:
     """The stripe hidden (set to the frame's background) over ``share`` of the left board's
     columns, from 10 % of the stripe's length on."""
     def f(img, c):
-        ys, xs = _stripe_extent(img)
+        _ys, xs = _stripe_extent(img)
         if xs.size == 0:
             return img
         lo, hi = xs.min(), xs.max()
@@ -252,7 +252,7 @@ def occluder(frac: tuple[float, float, float, float]) -> Perturb:
 def jpeg(quality: int) -> Perturb:
     """JPEG-compressed at ``quality`` and decoded (8 x 8 blocking)."""
     def f(img, c):
-        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        _ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
         return cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     return f
 
@@ -402,11 +402,11 @@ def run(ds: Path, work: Path, names: list[str] | None, seed: int, check: bool,
         d = work / case.name
         write_case(ds, d, case, seed)
         proc = subprocess.run(exe + ["calibrate", str(d), "--out", str(d / "out")],
-                              capture_output=True, text=True)
+                              capture_output=True, text=True, check=False)
         row = {"case": case.name, **evaluate_case(d, d / "out", proc)}
         if check:
             chk = subprocess.run(exe + ["check", str(d), "--sheet", str(d / "check.png")],
-                                 capture_output=True, text=True)
+                                 capture_output=True, text=True, check=False)
             row["check_exit"] = chk.returncode
         print("  ".join(f"{k}={v}" for k, v in row.items() if v != ""), flush=True)
         rows.append(row)
