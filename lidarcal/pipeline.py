@@ -265,9 +265,10 @@ def dataset_albedo(camera: CameraModel, boards: tuple[BoardView, BoardView],
 def blur_warning(ds: Dataset, blur_px: float) -> str:
     """The warning of a run whose stripe frames are blurrier than board.png."""
     return (f"{ds.root / 'stripes'}: the stripe images are blurrier than {ds.board_image.name} "
-            f"(an extra Gaussian of {blur_px:.1f} px): focus, aperture or exposure changed "
-            f"between them; the squares' albedo map is blurred to match (take board.png with "
-            f"the stripe frames' focus and aperture)")
+            f"(an extra Gaussian of {blur_px:.1f} px: focus or aperture changed between them, "
+            f"the stripe frames shook, or {ds.board_image.name} is noisy); the squares' albedo "
+            f"map is blurred to match (take {ds.board_image.name} with the stripe frames' focus "
+            f"and aperture)")
 
 
 def _rho_picks(positions: list[Position], n_images: int = REFLECTANCE_IMAGES) -> list[int]:
