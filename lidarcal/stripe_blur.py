@@ -57,7 +57,7 @@ def albedo_blur(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     ``samples`` as for :func:`lidarcal.stripe.reflectance_ratio` (per stripe: position along
     it, signal mass, blackness under it). Model: ``log mass = p(x) + log(1 - (1 - rho)
     (G_s * b))``, ``G_s *`` a Gaussian of sigma ``s`` along the stripe; ``s`` on
-    ``BLUR_GRID_PX`` (each with its best ``rho`` on a coarse grid), refined by a parabola,
+    ``BLUR_GRID_PX`` (each with its best ``rho``), refined by a parabola,
     then ``rho`` on the full grid at that ``s``. The blur is 0 unless it lowers the L1 cost
     by ``MIN_COST_GAIN`` (checked first at 1.5 px, so a sharp capture costs two evaluations)
     and reaches ``MIN_BLUR_PX``. ``rho`` is None when the ratio is not seen (as there).
@@ -70,13 +70,16 @@ def albedo_blur(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     if b95 - b5 < min_contrast:
         return None, 0.0
 
-    def cost(s: float) -> float:
-        return float(ratio_costs(_groups(groups, s), _COARSE).min())
+    def cost(s: float, grid: np.ndarray = _COARSE) -> float:
+        return float(ratio_costs(_groups(groups, s), grid).min())
 
     c0 = cost(0.0)
     blur = 0.0
     if cost(1.5) < (1.0 - MIN_COST_GAIN) * c0:
-        costs = np.array([cost(s) for s in BLUR_GRID_PX])
+        # each width with its best ratio on the full grid (the coarse one's steps are as
+        # large as the differences between neighbouring widths on a speckled stripe)
+        costs = np.array([cost(s, RATIO_GRID) for s in BLUR_GRID_PX])
+        c0 = costs[0]
         s = grid_minimum(BLUR_GRID_PX, costs)
         if s >= MIN_BLUR_PX and costs.min() < (1.0 - MIN_COST_GAIN) * c0:
             blur = s
