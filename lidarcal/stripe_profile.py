@@ -205,7 +205,10 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
 
     Above the background: brighter than ``base + max(0.35 (peak - base), 6 noise)``, with
     ``base`` the median and ``peak`` the 99.9th percentile of the masked pixels (a uint8
-    image: both from one histogram of them; a float one: the median of every 7th)."""
+    image: both from one histogram of them; a float one: the median of every 7th). When
+    those pixels spread more than ``BLOB_SPREAD_PX`` about their line (a bright reflection
+    wider than the stripe took it), the line is found again without the regions thicker than
+    a stripe, and kept when those pixels spread as a stripe's do (else the first line stands)."""
     if sm.dtype == np.uint8 and sm.flags.c_contiguous:
         hist = _masked_hist(sm, mask)  # the masked pixels' histogram
         if hist.sum() < 20:
@@ -233,6 +236,37 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         if xs.size < 10:
             return None
         P = np.column_stack([xs, ys]).astype(float)
+    found = _pca_line(P, scale)
+    if found is None or found[2] <= BLOB_SPREAD_PX:
+        return None if found is None else found[:2]
+    # the bright pixels spread far about their line: a reflection or glint brighter and
+    # wider than the stripe holds the fit. The same bright pixels without the regions
+    # thicker than any stripe (they survive an opening by a disc ~2 BLOB_SPREAD_PX wide)
+    # give the stripe's line, taken when they spread as a stripe's do.
+    hot8 = cv2.threshold(sm, thr, 1, cv2.THRESH_BINARY)[1] if sm.dtype == np.uint8 else \
+        (sm > thr).astype(np.uint8)
+    hot8 &= np.ascontiguousarray(mask).view(np.uint8)
+    k = 2 * round(BLOB_SPREAD_PX / scale) + 1
+    thick = cv2.morphologyEx(hot8, cv2.MORPH_OPEN,
+                             cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    rest = cv2.findNonZero(hot8 & (1 - thick))
+    if rest is None or len(rest) < 10:
+        return found[:2]
+    thin = _pca_line(rest.reshape(-1, 2).astype(float), scale)
+    return thin[:2] if thin is not None and thin[2] <= BLOB_SPREAD_PX else found[:2]
+
+
+#: A coarse line whose bright pixels spread more than this (px, robust sigma across it) is
+#: held by something wider than a stripe (a reflection): see :func:`_bright_line`. Stripes
+#: spread 2-3 px on the paper, harsh and wide rigs (lights on, saturated, blooming); a bright
+#: reflection blob 25-30 px.
+BLOB_SPREAD_PX = 8.0
+
+
+def _pca_line(P: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """PCA line (point, unit direction) of the pixels ``P`` (N, 2) of an image reduced by
+    ``scale``, in full-resolution pixels, with two rounds of rejection by the median absolute
+    perpendicular residual, and the robust sigma (px) of the pixels about it."""
     if scale != 1.0:
         P = scale * P + 0.5 * (scale - 1)
     x, y = np.ascontiguousarray(P.T)  # the two coordinates, each contiguous
@@ -249,7 +283,7 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         if np.array_equal(new, keep):
             break  # the next round would fit the same points again
         keep = new
-    return c, t
+    return c, t, s
 
 
 def _principal_direction(q: np.ndarray) -> np.ndarray:
