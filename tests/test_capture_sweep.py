@@ -26,9 +26,9 @@ def test_capture_sweep_one_case(small_dataset, tmp_path):
     assert float(row["cov2s"]) == 1.0 and float(row["centre_mm"]) < 0.5, row
     case = tmp_path / "work" / "blob255"
     assert (case / "out" / "calibration.json").is_file()
-    scan = sorted((case / "scans").iterdir())[0]
+    scan = min((case / "scans").iterdir())
     assert scan.samefile(small_dataset / "scans" / scan.name)  # hard-linked, not copied
-    stripe = sorted((case / "stripes").glob("*.png"))[0]
+    stripe = min((case / "stripes").glob("*.png"))
     assert stripe.stat().st_ino != (small_dataset / "stripes" / stripe.name).stat().st_ino
     listed = subprocess.run([sys.executable, str(SCRIPT), "--list"], capture_output=True,
                             text=True, check=False)
