@@ -56,7 +56,7 @@ from .stripe import (
     estimate_reflectance_ratio,
     reflectance_samples,
 )
-from .stripe_blur import albedo_blur, blur_blackness
+from .stripe_albedo import albedo_blur, blur_blackness
 from .trace import mark
 from .turntable import angle_scale, fit_paper, fit_rigid
 
@@ -247,7 +247,7 @@ def dataset_albedo(camera: CameraModel, boards: tuple[BoardView, BoardView],
                    positions: list[Position], n_images: int = REFLECTANCE_IMAGES,
                    laser_colour: str = "auto") -> tuple[float | None, float]:
     """``(rho, blur_px)``: :func:`dataset_reflectance_ratio` and the stripe frames' blur beyond
-    board.png's (:func:`lidarcal.stripe_blur.albedo_blur`), from the same few images; blur 0
+    board.png's (:func:`lidarcal.stripe_albedo.albedo_blur`), from the same few images; blur 0
     where none is seen, and then rho is :func:`dataset_reflectance_ratio`'s to the bit."""
     samples = []
     for k in _rho_picks(positions, n_images):

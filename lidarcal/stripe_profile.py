@@ -18,6 +18,7 @@ from .camera import undistort_pixels
 from .geometry import MAD_TO_SIGMA, median
 from .io.dataset import CameraModel
 from .laser_colour import SATURATED_DN
+from .stripe_albedo import reflectance_ratio
 from .stripe_quality import quality_problem, stripe_quality
 
 
@@ -676,78 +677,6 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.n
     right = b + (S[r, b] - h) / np.maximum(S[r, b] - S[r, b + 1], 1e-6)
     out[rows[use]] = 0.5 * (left + right)
     return out
-
-
-def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                      min_contrast: float = 0.5) -> float | None:
-    """The stripe's black/white reflectance ratio ``rho`` from its brightness along the stripe.
-
-    Each element of ``samples`` is one stripe: column position ``x``, signal
-    mass of the column profile and the effective blackness ``b`` under it.
-    Model: ``log mass = p(x) + log(1 - (1 - rho) b)`` with a quadratic
-    ``p`` per stripe (range and incidence change slowly along it); ``rho``
-    by a grid search minimising the sum of absolute residuals (speckle and
-    albedo noise are heavy-tailed). None when the blackness under the
-    stripes spans less than ``min_contrast`` (the ratio is then not seen).
-    """
-    groups = [(x, m, b) for x, m, b in samples if x is not None and len(x) >= 10]
-    if not groups:
-        return None
-    ball = np.concatenate([b for _, _, b in groups])
-    b5, b95 = np.percentile(ball, [5, 95])
-    if b95 - b5 < min_contrast:
-        return None
-    return grid_minimum(RATIO_GRID, ratio_costs(groups, RATIO_GRID))
-
-
-def grid_minimum(grid: np.ndarray, cost: np.ndarray) -> float:
-    """The minimum of ``cost`` over the evenly spaced ``grid``, refined by a parabola through
-    the lowest point and its neighbours (a step of at most one grid spacing)."""
-    i = int(np.argmin(cost))
-    if 0 < i < len(grid) - 1:  # parabolic refinement
-        c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
-        den = c0 - 2 * c1 + c2
-        step = 0.5 * (c0 - c2) / den if den > 0 else 0.0
-        return float(grid[i] + np.clip(step, -1, 1) * (grid[1] - grid[0]))
-    return float(grid[i])
-
-
-#: the grid of black/white reflectance ratios :func:`reflectance_ratio` searches
-RATIO_GRID = np.linspace(0.02, 1.0, 99)
-
-
-def ratio_costs(groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                grid: np.ndarray = RATIO_GRID) -> np.ndarray:
-    """The L1 cost of :func:`reflectance_ratio`'s model at each ratio of ``grid`` (summed over
-    the stripes ``groups``: ``(x, mass, blackness)``, at least a few samples each)."""
-    cost = np.zeros(len(grid))
-    for x, m, b in groups:
-        ok = m > 0
-        x, lm, b = x[ok], np.log(m[ok]), b[ok]
-        u = (x - x.mean()) / max(np.ptp(x), 1.0)
-        A = np.column_stack([np.ones_like(u), u, u * u])
-        pinv = np.linalg.pinv(A)
-        # all grid values at once: column g of Y is the model's left side for rho = grid[g]
-        Y = lm[:, None] - np.log(1.0 - (1.0 - grid)[None, :] * b[:, None])
-        res = Y - _times(A, _times(pinv, Y))
-        # one reweighting step towards an L1 fit (weighted normal equations, 3 x 3 per column)
-        w = 1.0 / np.maximum(np.abs(res), 1e-3)
-        M = np.empty((len(grid), 3, 3))
-        for i in range(3):
-            for j in range(i, 3):
-                M[:, i, j] = M[:, j, i] = _times((A[:, i] * A[:, j])[None, :], w)[0]
-        rhs = _times(A.T, w * Y).T
-        coef = np.linalg.solve(M, rhs[:, :, None])[:, :, 0]
-        cost += np.abs(Y - _times(A, coef.T)).sum(0)
-    return cost
-
-
-def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` for a short inner or outer dimension (``a`` (p, n), ``b`` (n, q), p or n
-    at most a few) by ``np.einsum``'s own loops on contiguous operands (the sums in the
-    order of broadcast sums, bit for bit): no multi-threaded BLAS call, whose spinning
-    threads cost more CPU than these small products."""
-    return np.einsum("ij,jk->ik", np.ascontiguousarray(a), np.ascontiguousarray(b))
 
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:

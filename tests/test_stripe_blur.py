@@ -1,4 +1,4 @@
-"""Stripe frames blurrier than board.png (lidarcal.stripe_blur): the extra blur is found from
+"""Stripe frames blurrier than board.png (lidarcal.stripe_albedo): the extra blur is found from
 the stripe's brightness along itself and the albedo map is blurred to match."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 
 from lidarcal.io.dataset import load_dataset
 from lidarcal.pipeline import _stripe_image, dataset_albedo, dataset_reflectance_ratio, find_boards
-from lidarcal.stripe_blur import albedo_blur, blur_blackness, smooth_along
+from lidarcal.stripe_albedo import albedo_blur, blur_blackness, smooth_along
 
 
 def _stripe_samples(rng, blur: float, rho: float, n: int = 4, noise: float = 0.03):
