@@ -496,4 +496,5 @@ def find_boards(ds: Dataset, camera: CameraModel, image: np.ndarray | None = Non
         return find_v_boards(img, ds.v_board, camera)
     except ValueError as e:
         raise DatasetError(ds.board_image, f"{e}; both boards must be fully "
-                                           "in view") from None
+                                           "in view, nothing in front of them, without "
+                                           "glare") from None

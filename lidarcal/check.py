@@ -214,8 +214,10 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     from .pipeline import (
         MIN_POSITIONS,
         _setup_warnings,
+        blur_blackness,
+        blur_warning,
         camera_for,
-        dataset_reflectance_ratio,
+        dataset_albedo,
         find_boards,
     )
     from .workbook import summarise_dataset
@@ -239,8 +241,12 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
         except DatasetError as e:
             res.problems.append(str(e))
     res.boards = boards
-    rho = None if boards is None else \
-        dataset_reflectance_ratio(camera, boards, ds.positions, laser_colour=ds.lidar.laser_colour)
+    rho, blur = (None, 0.0) if boards is None else \
+        dataset_albedo(camera, boards, ds.positions, laser_colour=ds.lidar.laser_colour)
+    if blur:
+        boards = blur_blackness(boards, blur)  # as sharp as the stripe frames (as calibrate)
+        res.boards = boards
+        res.notes.append(blur_warning(ds, blur))
     todo = ds.positions
     if progress:
         from tqdm import tqdm

@@ -54,7 +54,9 @@ from .stripe import (
     CameraLines,
     camera_lines,
     estimate_reflectance_ratio,
+    reflectance_samples,
 )
+from .stripe_albedo import albedo_blur, blur_blackness
 from .trace import mark
 from .turntable import angle_scale, fit_paper, fit_rigid
 
@@ -241,6 +243,34 @@ def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, Boar
     return estimate_reflectance_ratio(camera, images, boards) if images else None
 
 
+def dataset_albedo(camera: CameraModel, boards: tuple[BoardView, BoardView],
+                   positions: list[Position], n_images: int = REFLECTANCE_IMAGES,
+                   laser_colour: str = "auto") -> tuple[float | None, float]:
+    """``(rho, blur_px)``: :func:`dataset_reflectance_ratio` and the stripe frames' blur beyond
+    board.png's (:func:`lidarcal.stripe_albedo.albedo_blur`), from the same few images; blur 0
+    where none is seen, and then rho is :func:`dataset_reflectance_ratio`'s to the bit."""
+    samples = []
+    for k in _rho_picks(positions, n_images):
+        try:
+            img = _stripe_image(positions[k], camera, laser_colour)
+        except DatasetError:
+            continue
+        got = reflectance_samples(camera, img, boards)
+        if got is None:
+            return None, 0.0
+        samples += got
+    return albedo_blur(samples) if samples else (None, 0.0)
+
+
+def blur_warning(ds: Dataset, blur_px: float) -> str:
+    """The warning of a run whose stripe frames are blurrier than board.png."""
+    return (f"{ds.root / 'stripes'}: the stripe images are blurrier than {ds.board_image.name} "
+            f"(an extra Gaussian of {blur_px:.1f} px: focus or aperture changed between them, "
+            f"the stripe frames shook, or {ds.board_image.name} is noisy); the squares' albedo "
+            f"map is blurred to match (take {ds.board_image.name} with the stripe frames' focus "
+            f"and aperture)")
+
+
 def _rho_picks(positions: list[Position], n_images: int = REFLECTANCE_IMAGES) -> list[int]:
     """Indices of the positions spread over the sweep that the reflectance ratio is pooled from
     (:func:`lidarcal.io.dataset.prefetch_stripe_images` decodes them first)."""
@@ -300,15 +330,18 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
         mark("boards")
         _WORKER["images"] = images  # an image not decoded yet is read on demand
         # the stripe's reflectance ratio (a few images) while the last images are decoded
-        rho = dataset_reflectance_ratio(camera, boards, todo,
-                                        laser_colour=ds.lidar.laser_colour)
+        rho, blur = dataset_albedo(camera, boards, todo, laser_colour=ds.lidar.laser_colour)
+        boards = blur_blackness(boards, blur)  # as sharp as the stripe frames
         mark("rho")
         # stopped, not waited for: no thread runs when the workers fork, and the images not
         # decoded yet are decoded by the workers, on both cores, instead of by one thread
         images.close()
         mark("decode-stopped")
-        return _calibrate(ds, camera, intr, boards, todo, skip, strict, method, progress,
-                          workers, rho, fit_planes)
+        res = _calibrate(ds, camera, intr, boards, todo, skip, strict, method, progress,
+                         workers, rho, fit_planes)
+        if blur:
+            res.warnings.insert(0, blur_warning(ds, blur))
+        return res
     finally:
         _WORKER.pop("images", None)
         if own:

@@ -18,6 +18,7 @@ from .camera import undistort_pixels
 from .geometry import MAD_TO_SIGMA, median
 from .io.dataset import CameraModel
 from .laser_colour import SATURATED_DN
+from .stripe_albedo import reflectance_ratio
 from .stripe_quality import quality_problem, stripe_quality
 
 
@@ -205,7 +206,10 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
 
     Above the background: brighter than ``base + max(0.35 (peak - base), 6 noise)``, with
     ``base`` the median and ``peak`` the 99.9th percentile of the masked pixels (a uint8
-    image: both from one histogram of them; a float one: the median of every 7th)."""
+    image: both from one histogram of them; a float one: the median of every 7th). When
+    those pixels spread more than ``BLOB_SPREAD_PX`` about their line (a bright reflection
+    wider than the stripe took it), the line is found again without the regions thicker than
+    a stripe, and kept when those pixels spread as a stripe's do (else the first line stands)."""
     if sm.dtype == np.uint8 and sm.flags.c_contiguous:
         hist = _masked_hist(sm, mask)  # the masked pixels' histogram
         if hist.sum() < 20:
@@ -233,6 +237,37 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         if xs.size < 10:
             return None
         P = np.column_stack([xs, ys]).astype(float)
+    found = _pca_line(P, scale)
+    if found is None or found[2] <= BLOB_SPREAD_PX:
+        return None if found is None else found[:2]
+    # the bright pixels spread far about their line: a reflection or glint brighter and
+    # wider than the stripe holds the fit. The same bright pixels without the regions
+    # thicker than any stripe (they survive an opening by a disc ~2 BLOB_SPREAD_PX wide)
+    # give the stripe's line, taken when they spread as a stripe's do.
+    hot8 = cv2.threshold(sm, thr, 1, cv2.THRESH_BINARY)[1] if sm.dtype == np.uint8 else \
+        (sm > thr).astype(np.uint8)
+    hot8 &= np.ascontiguousarray(mask).view(np.uint8)
+    k = 2 * round(BLOB_SPREAD_PX / scale) + 1
+    thick = cv2.morphologyEx(hot8, cv2.MORPH_OPEN,
+                             cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    rest = cv2.findNonZero(hot8 & (1 - thick))
+    if rest is None or len(rest) < 10:
+        return found[:2]
+    thin = _pca_line(rest.reshape(-1, 2).astype(float), scale)
+    return thin[:2] if thin is not None and thin[2] <= BLOB_SPREAD_PX else found[:2]
+
+
+#: A coarse line whose bright pixels spread more than this (px, robust sigma across it) is
+#: held by something wider than a stripe (a reflection): see :func:`_bright_line`. Stripes
+#: spread 2-3 px on the paper, harsh and wide rigs (lights on, saturated, blooming); a bright
+#: reflection blob 25-30 px.
+BLOB_SPREAD_PX = 8.0
+
+
+def _pca_line(P: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """PCA line (point, unit direction) of the pixels ``P`` (N, 2) of an image reduced by
+    ``scale``, in full-resolution pixels, with two rounds of rejection by the median absolute
+    perpendicular residual, and the robust sigma (px) of the pixels about it."""
     if scale != 1.0:
         P = scale * P + 0.5 * (scale - 1)
     x, y = np.ascontiguousarray(P.T)  # the two coordinates, each contiguous
@@ -249,7 +284,7 @@ def _bright_line(sm: np.ndarray, mask: np.ndarray, noise: float, scale: float = 
         if np.array_equal(new, keep):
             break  # the next round would fit the same points again
         keep = new
-    return c, t
+    return c, t, s
 
 
 def _principal_direction(q: np.ndarray) -> np.ndarray:
@@ -642,62 +677,6 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.n
     right = b + (S[r, b] - h) / np.maximum(S[r, b] - S[r, b + 1], 1e-6)
     out[rows[use]] = 0.5 * (left + right)
     return out
-
-
-def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                      min_contrast: float = 0.5) -> float | None:
-    """The stripe's black/white reflectance ratio ``rho`` from its brightness along the stripe.
-
-    Each element of ``samples`` is one stripe: column position ``x``, signal
-    mass of the column profile and the effective blackness ``b`` under it.
-    Model: ``log mass = p(x) + log(1 - (1 - rho) b)`` with a quadratic
-    ``p`` per stripe (range and incidence change slowly along it); ``rho``
-    by a grid search minimising the sum of absolute residuals (speckle and
-    albedo noise are heavy-tailed). None when the blackness under the
-    stripes spans less than ``min_contrast`` (the ratio is then not seen).
-    """
-    groups = [(x, m, b) for x, m, b in samples if x is not None and len(x) >= 10]
-    if not groups:
-        return None
-    ball = np.concatenate([b for _, _, b in groups])
-    b5, b95 = np.percentile(ball, [5, 95])
-    if b95 - b5 < min_contrast:
-        return None
-    grid = np.linspace(0.02, 1.0, 99)
-    cost = np.zeros(len(grid))
-    for x, m, b in groups:
-        ok = m > 0
-        x, lm, b = x[ok], np.log(m[ok]), b[ok]
-        u = (x - x.mean()) / max(np.ptp(x), 1.0)
-        A = np.column_stack([np.ones_like(u), u, u * u])
-        pinv = np.linalg.pinv(A)
-        # all grid values at once: column g of Y is the model's left side for rho = grid[g]
-        Y = lm[:, None] - np.log(1.0 - (1.0 - grid)[None, :] * b[:, None])
-        res = Y - _times(A, _times(pinv, Y))
-        # one reweighting step towards an L1 fit (weighted normal equations, 3 x 3 per column)
-        w = 1.0 / np.maximum(np.abs(res), 1e-3)
-        M = np.empty((len(grid), 3, 3))
-        for i in range(3):
-            for j in range(i, 3):
-                M[:, i, j] = M[:, j, i] = _times((A[:, i] * A[:, j])[None, :], w)[0]
-        rhs = _times(A.T, w * Y).T
-        coef = np.linalg.solve(M, rhs[:, :, None])[:, :, 0]
-        cost += np.abs(Y - _times(A, coef.T)).sum(0)
-    i = int(np.argmin(cost))
-    if 0 < i < len(grid) - 1:  # parabolic refinement
-        c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
-        den = c0 - 2 * c1 + c2
-        step = 0.5 * (c0 - c2) / den if den > 0 else 0.0
-        return float(grid[i] + np.clip(step, -1, 1) * (grid[1] - grid[0]))
-    return float(grid[i])
-
-
-def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` for a short inner or outer dimension (``a`` (p, n), ``b`` (n, q), p or n
-    at most a few) by ``np.einsum``'s own loops on contiguous operands (the sums in the
-    order of broadcast sums, bit for bit): no multi-threaded BLAS call, whose spinning
-    threads cost more CPU than these small products."""
-    return np.einsum("ij,jk->ik", np.ascontiguousarray(a), np.ascontiguousarray(b))
 
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:

@@ -133,7 +133,7 @@ def break_image(path: Path, how: str) -> None:
     if how == "wrong size":
         _write_img(path, cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2)))
     elif how == "16-bit":
-        _write_img(path, img.astype(np.uint16) * 257)
+        _write_img(path, img.astype(np.uint16) * 16)  # 12-bit counts, not scaled to 16 bits
     elif how == "float":
         base = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         path.unlink()

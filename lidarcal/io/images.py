@@ -36,13 +36,37 @@ def read_image(path: Path, image_size: tuple[int, int] | None = None, *,
 
 
 def _decode_8bit(path: Path) -> np.ndarray:
-    """An 8-bit image as stored (gray or BGR(A)), by :func:`decode_image`; DatasetError
-    otherwise."""
+    """An image as 8 bits per channel (gray or BGR(A)), by :func:`decode_image`: 8-bit as
+    stored, 16-bit by :func:`eight_bit_from_16`; DatasetError otherwise."""
     img = decode_image(path, fix="copy it again or drop this position")
+    if img.dtype == np.uint16:
+        return eight_bit_from_16(img, path)
     if img.dtype != np.uint8:
-        raise DatasetError(path, f"expected an 8-bit image, got {img.dtype}; save it as an 8-bit "
-                                 "PNG (gray or BGR)")
+        raise DatasetError(path, f"expected an 8- or 16-bit image, got {img.dtype}; save it as "
+                                 "an 8-bit PNG (gray or BGR)")
     return img
+
+
+#: A 16-bit image whose values all stay below this holds a 10- or 12-bit sensor's raw values
+#: (PNG requires samples scaled to the full 16-bit range): refused, never read near black
+MIN_16BIT_TOP = 4096
+
+
+def eight_bit_from_16(img: np.ndarray, path: Path) -> np.ndarray:
+    """A 16-bit image (PNG's full 0-65535 range) as uint8: ``round(v / 257)``, so that
+    65535 -> 255 and an 8-bit image stored as 16 bits (``v * 257``) comes back exactly.
+
+    Values that all stay below ``MIN_16BIT_TOP`` (a 10- or 12-bit camera's raw counts
+    written unscaled, against the PNG specification) would read as an almost black image
+    (at most 16 of 255): DatasetError naming the file instead of a guess of the bit depth.
+    """
+    top = int(img[..., :3].max()) if img.ndim == 3 else int(img.max())
+    if top < MIN_16BIT_TOP:
+        raise DatasetError(path, f"16-bit image whose largest value is {top} (below "
+                                 f"{MIN_16BIT_TOP}): a 10- or 12-bit camera's raw values not "
+                                 "scaled to 16 bits? Scale them to 0-65535 (x 16 for 12 bits) "
+                                 "or write an 8-bit PNG")
+    return ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
 
 
 def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_UNCHANGED,
