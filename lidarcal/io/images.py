@@ -64,7 +64,7 @@ def eight_bit_from_16(img: np.ndarray, path: Path) -> np.ndarray:
     if top < MIN_16BIT_TOP:
         raise DatasetError(path, f"16-bit image whose largest value is {top} (below "
                                  f"{MIN_16BIT_TOP}): a 10- or 12-bit camera's raw values not "
-                                 "scaled to 16 bits? Scale them to 0-65535 (x 16 for 12 bits) "
+                                 "scaled to 16 bits; scale them to 0-65535 (x 16 for 12 bits) "
                                  "or write an 8-bit PNG")
     return ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
 
