@@ -111,8 +111,8 @@ def variants() -> list[Variant]:
         _v("pos5", n_positions=5, psi_step_deg=0.25),
         _v("pos150", n_positions=150, psi_step_deg=0.1),
         _v("step2", n_positions=12, psi_step_deg=2.0),
-        _v("step5", n_positions=8, psi_step_deg=5.0, **SMALL_V),
-        _v("sweep60", n_positions=13, psi_step_deg=5.0, **SMALL_V, hinge_distance_mm=(700.0, 760.0)),
+        _v("step3_wide", WBASE, n_positions=10, psi_step_deg=3.0),     # a 27 deg sweep
+        _v("pos3_step5", n_positions=3, psi_step_deg=5.0),
         _v("negstep", psi_step_deg=-0.75),
         _v("unsorted", post="shuffle"),
         _v("psi300", psi0_deg=(300.0, 310.0)),
@@ -120,7 +120,7 @@ def variants() -> list[Variant]:
         _v("encoder0.02", encoder_noise_deg=0.02),
         _v("axis_tilt10", axis_tilt_deg=10.0),
         # --- geometry ---
-        _v("v_near", hinge_distance_mm=(800.0, 850.0), **SMALL_V),
+        _v("v_near", WBASE, hinge_distance_mm=(600.0, 680.0)),
         _v("v_far", hinge_distance_mm=(2000.0, 2200.0), lidar_range_max_mm=5000.0,
            wall_distance_mm=(3000.0, 3500.0)),
         _v("wall_close", wall_distance_mm=(1300.0, 1400.0), wall_min_gap_mm=60.0),
@@ -193,18 +193,20 @@ def measure_errors(out: Path) -> dict:
             "meas_n": len(err)}
 
 
-def run_variant(v: Variant, work: Path, seed: int) -> dict:
-    """Simulate, check, calibrate (and measure) one variant; its row of the table."""
+def run_variant(v: Variant, work: Path, seed: int, reuse: bool = False) -> dict:
+    """Simulate, check, calibrate (and measure) one variant; its row of the table. ``reuse``:
+    a dataset already simulated in ``work`` (same seed and variant) is used again."""
     ds, out = work / v.name, work / v.name / "out"
     row: dict = {"variant": v.name}
-    if ds.exists():
-        shutil.rmtree(ds)
-    try:
-        simulate(ds, seed=seed, rig=v.rig, with_sweeps=v.sweeps)
-    except ValueError as exc:          # the simulator cannot place such a rig
-        row["error"] = f"simulate: {exc}"
-        return row
-    _post(ds, v.post, np.random.default_rng(seed))
+    if not (reuse and (ds / "truth.json").is_file()):
+        if ds.exists():
+            shutil.rmtree(ds)
+        try:
+            simulate(ds, seed=seed, rig=v.rig, with_sweeps=v.sweeps)
+        except ValueError as exc:          # the simulator cannot place such a rig
+            row["error"] = f"simulate: {exc}"
+            return row
+        _post(ds, v.post, np.random.default_rng(seed))
     chk = _lidarcal("check", str(ds), "--sheet", str(work / f"{v.name}-check.png"))
     row["check"] = chk.returncode
     cal = _lidarcal("calibrate", str(ds), "--out", str(out))
@@ -260,6 +262,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="override every variant's number of positions (a quick run)")
     ap.add_argument("--csv", type=Path, default=None, help="also write the rows to this CSV")
     ap.add_argument("--list", action="store_true", help="list the variants and exit")
+    ap.add_argument("--reuse", action="store_true",
+                    help="use the datasets already simulated in --work again (compare code versions)")
     ap.add_argument("--verbose", action="store_true", help="print each variant's warnings")
     a = ap.parse_args(argv)
     vs = variants()
@@ -279,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     a.work.mkdir(parents=True, exist_ok=True)
     rows = []
     for v in vs:
-        r = run_variant(v, a.work, a.seed)
+        r = run_variant(v, a.work, a.seed, a.reuse)
         rows.append(r)
         print(format_row(r), flush=True)
         if a.verbose:

@@ -16,8 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidarcal.evaluate import axis_direction_error_deg, pose_errors
+from lidarcal.evaluate import (
+    axis_direction_error_deg,
+    pose_errors,
+    scan_range_errors,
+    truth_scan_line,
+)
 from lidarcal.pipeline import calibrate
+from lidarcal.scan import split_v
 from lidarcal.scan_edges import edge_zones, trim_edges
 from lidarcal.scan_segments import fit_line_2d
 from lidarcal.synthetic import make_truth, simulate, simulate_scans
@@ -193,3 +199,25 @@ def test_angles_wrapping_at_360_calibrate_as_one_sweep(camera_side, tmp_path):
     assert rigid.z_axis_deg.max() < 0.01
     ax = axis_direction_error_deg(res.joint_model.axis.direction, np.array(truth["axis"]["direction"]))
     assert ax <= 2 * res.joint_model.sigma(res.joint_model.psi_ref_deg)["axis_direction_deg"]
+
+
+def test_a_360_deg_scan_with_the_v_across_its_first_and_last_beams():
+    """A 360 deg scanner whose V lies behind it (beam angles near +-180 deg, the scan's first
+    and last beams): the V was cut in two ("no pair forms the V", exit 2); now the scan is
+    read from its longest gap, and the two segments lie on the two true board lines."""
+    rig = RIG.with_(lidar_angle_min_deg=-180.0, lidar_angle_max_deg=179.5, lidar_angle_step_deg=0.5,
+                    lidar_yaw_deg=180.0, n_positions=4)
+    truth = make_truth(SEED, rig, with_discs=False, with_intrinsics=False)
+    td = json.loads(json.dumps(truth.to_dict(), default=lambda o: np.asarray(o).tolist()))
+    pose = truth.pose_at(truth.psi_true_deg[0])
+    ang = beam_angles_deg(rig)
+    r = simulate_scans(truth.surfaces, pose.R, pose.T, rig, _rng(SEED, STREAM_SCAN, 0))[0]
+    r = np.where(r > 0, r, np.nan)
+    assert np.isfinite(r[0]) and np.isfinite(r[-1])  # the V crosses the seam
+    seg = split_v(ang, r)
+    assert seg.info["full_circle_cut"] > 0
+    for idx in (seg.index1, seg.index2):
+        assert len(idx) > 20
+        err = [np.abs(scan_range_errors(truth_scan_line(td, 0, b), ang[idx], r[idx])["error_mm"])
+               for b in (0, 1)]
+        assert min(np.median(e) for e in err) < 3 * rig.range_noise_mm
