@@ -148,20 +148,32 @@ def test_simulator_writes_the_hint_of_its_mounting(roll, hint):
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "lidar_sweep.py"
 
 
-def test_lidar_sweep_script_runs_one_variant(tmp_path):
-    """scripts/lidar_sweep.py (the rig-class sweep) on its smallest variant: one table row
-    with the exit codes and the true errors against truth.json."""
-    p = subprocess.run([sys.executable, str(SCRIPT), "--work", str(tmp_path), "--only", "base",
-                        "--positions", "4", "--csv", str(tmp_path / "rows.csv")],
-                       capture_output=True, text=True, timeout=600, check=False)
+def _sweep(*args: str) -> str:
+    p = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True,
+                       timeout=600, check=False)
     assert p.returncode == 0, p.stderr
-    line = p.stdout.strip().splitlines()[-1]
+    return p.stdout
+
+
+def test_lidar_sweep_script_runs_one_variant(tmp_path):
+    """scripts/lidar_sweep.py (the rig-class sweep, README commands) on its smallest variant:
+    one table row with the exit codes and the true errors against truth.json; ``--reuse``
+    calibrates the same dataset again (same numbers); ``--list`` names every variant."""
+    names = [line.split()[0] for line in _sweep("--list").splitlines()]
+    assert {"base", "divergence", "noise20", "psiwrap", "fov360_yaw180", "disc_near"} <= set(names)
+    csv1, csv2 = tmp_path / "rows.csv", tmp_path / "rows2.csv"
+    line = _sweep("--work", str(tmp_path), "--only", "base", "--positions", "4", "--csv",
+                  str(csv1)).strip().splitlines()[-1]
     assert line.startswith("base") and "cal 0" in line and "centre" in line, line
-    rows = (tmp_path / "rows.csv").read_text().splitlines()
-    head = rows[0].split(",")
-    row = dict(zip(head, rows[1].split(",")))
-    assert row["cal"] == "0" and float(row["centre_mm"]) < 5.0
+    rows = [dict(zip(c.read_text().splitlines()[0].split(","), c.read_text().splitlines()[1].split(",")))
+            for c in (csv1,) if c.is_file()]
+    assert rows[0]["cal"] == "0" and float(rows[0]["centre_mm"]) < 5.0
     assert (tmp_path / "base" / "out" / "calibration.json").is_file()
+    stamp = (tmp_path / "base" / "truth.json").stat().st_mtime_ns
+    _sweep("--work", str(tmp_path), "--only", "base", "--positions", "4", "--reuse", "--csv", str(csv2))
+    assert (tmp_path / "base" / "truth.json").stat().st_mtime_ns == stamp  # not simulated again
+    again = dict(zip(csv2.read_text().splitlines()[0].split(","), csv2.read_text().splitlines()[1].split(",")))
+    assert again["centre_mm"] == rows[0]["centre_mm"]
 
 
 @pytest.mark.parametrize("psi", [[10.0, 10.5, 11.0], [0.0, 120.0, 240.0], [300.0, 299.25, 298.5]])
