@@ -20,7 +20,7 @@ import os
 import sys
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -58,7 +58,7 @@ from .stripe import (
 )
 from .stripe_albedo import albedo_blur, blur_blackness
 from .trace import mark
-from .turntable import angle_scale, fit_paper, fit_rigid
+from .turntable import angle_scale, fit_paper, fit_rigid, unwrap_angles_deg
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -383,6 +383,8 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
                rho: float | None, fit_planes: bool = False) -> CalibrationResult:
     skipped = [(i, "dropped on request (--skip)") for i in sorted(skip)]
     warnings: list[str] = []
+    todo, wrap = _unwrapped(ds, todo)
+    warnings += wrap
     workers = workers or min(2, os.cpu_count() or 1)
     if workers > 1 and len(todo) > 4:
         # camera, boards and LiDAR spec go to each worker once (initializer), not with each task
@@ -422,6 +424,20 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
             warnings += [f"joint fit: {w}" for w in res.joint_model.warnings]
         mark("joint")
     return res
+
+
+def _unwrapped(ds: Dataset, todo: list[Position]) -> tuple[list[Position], list[str]]:
+    """The positions with their angles as one sweep (:func:`lidarcal.turntable.unwrap_angles_deg`:
+    a controller wrapping at 360 deg), and a warning naming positions.csv when they changed."""
+    psi = np.array([p.psi_deg for p in todo])
+    u = unwrap_angles_deg(psi)
+    if np.array_equal(u, psi):
+        return todo, []
+    out = [replace(p, psi_deg=float(a)) for p, a in zip(todo, u)]
+    text = (f"{ds.root / 'positions.csv'}: psi_deg wraps at 360 deg (from {psi.min():g} to "
+            f"{psi.max():g}); taken as one sweep from {u.min():g} to {u.max():g} deg (the "
+            "same poses: a turn by psi + 360 deg is a turn by psi)")
+    return out, [text]
 
 
 def _apply_skip_policy(ds: Dataset, todo: list[Position], outcomes: list, strict: bool

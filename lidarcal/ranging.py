@@ -58,6 +58,10 @@ DATA_SHARE = 0.5
 #: a term is applied when the data move it this many sigmas from the prior's mean; else it is
 #: held there (the pose as with exact ranges) and its sigma still enters every rig sigma
 RANGING_SIGNIFICANCE = 3.0
+#: a term the fit puts more than this many *prior* sigmas from the prior's mean contradicts
+#: the prior: the scans did not separate it from the LiDAR's position (e.g. 20 mm range noise:
+#: a 1.2 m offset, the LiDAR moved with it); it is held at the prior's mean, with a warning
+PRIOR_CONFLICT = 5.0
 #: returns this close to a square edge (mm) are counted partly dark (footprint, pose error)
 EDGE_BLEND_MM = 1.0
 MODEL_TEXT = "rho_true = rho_measured - offset_mm - dark_extra_mm * [return from a black board square]"

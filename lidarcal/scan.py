@@ -27,7 +27,7 @@ it on ray-cast scans.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -200,6 +200,39 @@ def _trim_outer(beams: np.ndarray, resid: np.ndarray, scale: float, from_start: 
     return keep
 
 
+def full_circle_cut(angle_deg: np.ndarray, range_mm: np.ndarray) -> int:
+    """Where to start a 360 deg scan so that the V is not cut by its first and last beams:
+    the middle of its longest run of beams without a return (else of its largest range
+    jump); 0 for a scan that does not close the circle or has no return at its first or last
+    beam (nothing straddles the seam)."""
+    ang = np.asarray(angle_deg, dtype=float)
+    n = len(ang)
+    if n < 3:
+        return 0
+    step = (ang[-1] - ang[0]) / (n - 1)
+    if ang[-1] - ang[0] + 1.5 * step < 360.0:
+        return 0
+    r = np.asarray(range_mm, dtype=float)
+    none = ~np.isfinite(r) | (r <= 0)
+    if none[0] or none[-1]:  # no return at the seam: nothing straddles it
+        return 0
+    if none.any():
+        # longest circular run of no-returns: start it after a return
+        k0 = int(np.flatnonzero(~none)[-1]) + 1
+        runs = np.roll(none, -k0)
+        best, best_len, start, length = 0, 0, 0, 0
+        for i, v in enumerate(runs):
+            if v:
+                start, length = (i, length + 1) if length == 0 else (start, length + 1)
+                if length > best_len:
+                    best, best_len = start, length
+            else:
+                length = 0
+        return int((k0 + best + best_len // 2) % n)
+    jumps = np.abs(np.diff(np.concatenate([r, r[:1]])))
+    return int((np.argmax(jumps) + 1) % n)
+
+
 def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: float | None = None,
             alpha: float | None = None, alpha_tol_deg: float = 15.0,
             opening_deg: tuple[float, float] | None = None, min_points: int = 8,
@@ -244,6 +277,16 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         When fewer than two line segments are found, or no pair forms the V.
     """
     ang = np.asarray(angle_deg, dtype=float)
+    cut = full_circle_cut(ang, range_mm)
+    if cut:  # a 360 deg scan: the V may straddle the first and last beams; split where nothing is
+        n = len(ang)
+        rolled = np.concatenate([ang[cut:], ang[:cut] + 360.0])
+        seg = split_v(rolled, np.roll(np.asarray(range_mm, dtype=float), -cut),
+                      range_noise_mm=range_noise_mm, alpha=alpha, alpha_tol_deg=alpha_tol_deg,
+                      opening_deg=opening_deg, min_points=min_points, max_gap=max_gap,
+                      max_trim=max_trim)
+        back = {k: (getattr(seg, k) + cut) % n for k in ("index1", "index2", "rejected1", "rejected2")}
+        return replace(seg, **back, info={**seg.info, "full_circle_cut": cut})
     pts = scan_points(ang, range_mm)
     rho = np.hypot(pts[:, 0], pts[:, 1])
     n_valid = int(np.isfinite(rho).sum())

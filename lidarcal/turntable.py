@@ -147,6 +147,26 @@ class AngleScale:
         return self.turned_deg / self.reported_deg if self.reported_deg > 0 else np.inf
 
 
+def unwrap_angles_deg(psi_deg) -> np.ndarray:
+    """Turntable angles as one contiguous sweep (deg): a controller that wraps at 360 deg
+    reports ..., 359.31, 0.06, ... for positions 0.75 deg apart. The angles are placed on the
+    circle and cut at their largest gap; when that gives a shorter span than the reported one,
+    each angle becomes ``start + (psi - start) mod 360`` (``start``: the first angle after the
+    gap), which the pose function reads the same (a rotation by psi and by psi + 360 deg is one
+    rotation, eq. 15). Otherwise the angles are returned unchanged (the same array values)."""
+    psi = np.asarray(psi_deg, dtype=float).ravel()
+    if len(psi) < 2:
+        return psi
+    m = np.sort(np.mod(psi, 360.0))
+    gaps = np.diff(np.concatenate([m, [m[0] + 360.0]]))
+    g = int(np.argmax(gaps))
+    span = 360.0 - float(gaps[g])
+    if span >= float(np.ptp(psi)) - 1e-6:
+        return psi
+    start = float(m[(g + 1) % len(m)])
+    return start + np.mod(psi - start, 360.0)
+
+
 def angle_scale(psi_deg, samples: Sequence[Pose]) -> AngleScale:
     """Do the reported angles measure the turn the samples show? (the premise of eq. 15).
 

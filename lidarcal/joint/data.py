@@ -8,6 +8,7 @@ import numpy as np
 
 from ..geometry import Pose
 from ..io.dataset import BoardSpec, CameraModel
+from ..scan_edges import EdgeZones, edge_zones, trim_edges
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,11 +155,22 @@ def build_joint_data(camera: CameraModel, psi_deg, scans: list[tuple[np.ndarray,
                      None if black_parity is None else tuple(black_parity))
 
 
+def scan_edge_zones(positions) -> EdgeZones:
+    """The edge zones of the positions' scan segments (:func:`lidarcal.scan_edges.edge_zones`:
+    residuals to each position's own free V lines, pooled over the positions)."""
+    segs = []
+    for p in positions:
+        free = p.lidar_lines.free or p.lidar_lines
+        segs += [(p.segments.points1, free.line1, True), (p.segments.points2, free.line2, False)]
+    return edge_zones(segs)
+
+
 def joint_data(result, board_poses: str = "homography") -> JointData:
     """:class:`JointData` from a :class:`lidarcal.pipeline.CalibrationResult`.
 
     Board ``k`` gets scan segment ``pose.info["pairs"][k]`` (``points1`` for 0,
-    ``points2`` for 1) and the stripe centres ``camera_lines.centres_px[k]``.
+    ``points2`` for 1), less its edge zones (:func:`scan_edge_zones`: returns whose spot
+    straddles the hinge or a board's edge), and the stripe centres ``camera_lines.centres_px[k]``.
     ``board_poses``: "homography" (eq. 2, ``BoardView.R, T``) or "pnp"
     (``cv2.solvePnP``, ``BoardView.R_pnp, T_pnp``).
     """
@@ -166,9 +178,10 @@ def joint_data(result, board_poses: str = "homography") -> JointData:
         raise ValueError(f"board_poses must be 'homography' or 'pnp', got {board_poses!r}")
     pnp = board_poses == "pnp"
     scans, stripes, points = [], [], []
+    zones = scan_edge_zones(result.positions)
     for p in result.positions:
         pairs = p.pose.info.get("pairs", (0, 1))
-        seg = (p.segments.points1, p.segments.points2)
+        seg = (trim_edges(p.segments.points1, True, zones), trim_edges(p.segments.points2, False, zones))
         scans.append((seg[pairs[0]], seg[pairs[1]]))
         stripes.append(tuple(p.camera_lines.centres_px))
         points.append(tuple(getattr(p.camera_lines, "points_3d", None) or (None, None)))

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..geometry import Plane
-from ..ranging import DATA_SHARE, RANGING_SIGNIFICANCE, RangingModel, RangingPrior
+from ..ranging import DATA_SHARE, PRIOR_CONFLICT, RANGING_SIGNIFICANCE, RangingModel, RangingPrior
 from ..ranging import ranging_prior as _ranging_prior
 from ..turntable import Axis
 from .data import JointData, joint_data
@@ -178,6 +178,16 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         _, rv = prob.split(_full(x))
         sig = _ranging_sigmas(c_all, p.sandwich, rv, prob.dark)
         z = np.abs(rv[:n_rng] - prior_arrays[0][:n_rng]) / np.maximum(sig, 1e-300)
+        conflict = _prior_conflicts(rv[:n_rng], prior_arrays)
+        if conflict.any():
+            # the fit went far with the ranging terms (and estimated its noise model there):
+            # fitted again from the starts with ranges taken as exact, and said so
+            again = fit_joint_data(data, starts, fit_planes=fit_planes, loss=loss,
+                                   psi_ref_deg=psi_ref_deg, f_scale=f_scale, solver=solver,
+                                   correlated=correlated, corner_floor_px=corner_floor_px,
+                                   jitter=jitter, ranging=False, plane_prior=plane_prior)
+            return replace(again, warnings=tuple(_conflict_warnings(rv[:n_rng], conflict, prior))
+                           + again.warnings)
         held = tuple(int(j) for j in np.flatnonzero(z <= RANGING_SIGNIFICANCE))
         if held:
             rng0 = prob.base.ranging.copy()
@@ -250,8 +260,37 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             "rejected_stripe": int((prob.stripe.w == 0).sum()), "jitter": jit,
             "scan_dark": prob.dark, "ranging_covariance": cov_all[N_RIG:, N_RIG:],
             "ranging_rig_covariance": cov_all[N_RIG:, :N_RIG]}
-    return JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
-                      jitter_deg, corrections, rmodel)
+    model = JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
+                       jitter_deg, corrections, rmodel)
+    scan_components = any(noise.get(f"scan{b}_{c}", 0.0) > 0 for b in range(2)
+                          for c in ("offset_mm", "tilt_mm_per_mm"))
+    if rmodel is not None and "offset" not in rmodel.held and correlated and scan_components:
+        # an offset found with correlated scan errors in the noise model: those can absorb
+        # the pattern that separates the offset from the LiDAR's position (a far solution
+        # whose residuals then look correlated); the white-noise model must agree
+        white = fit_joint_data(data, starts, fit_planes=fit_planes, loss=loss,
+                               psi_ref_deg=psi_ref_deg, f_scale=f_scale, solver=solver,
+                               correlated=False, corner_floor_px=corner_floor_px, jitter=jitter,
+                               ranging=True, ranging_prior=prior, plane_prior=plane_prior)
+        disagree = _offset_disagreement(rmodel, white.ranging)
+        if disagree > RANGING_SIGNIFICANCE:
+            msg = (f"the range offset is {rmodel.offset_mm:.4g} +- {rmodel.offset_sigma_mm:.2g} mm "
+                   f"with correlated scan errors in the noise model but "
+                   f"{white.ranging.offset_mm:.4g} +- {white.ranging.offset_sigma_mm:.2g} mm with "
+                   f"white noise ({disagree:.1f} sigma apart): the scans do not separate the "
+                   "offset from the LiDAR's position; the white-noise fit is used (its sigmas "
+                   "may be optimistic); give lidar.range_offset_mm and range_offset_sigma_mm in "
+                   "dataset.json if the datasheet knows the offset")
+            return replace(white, warnings=(msg,) + white.warnings)
+    return model
+
+
+def _offset_disagreement(a: RangingModel, b: RangingModel | None) -> float:
+    """How many combined sigmas two fits' range offsets are apart (0 without the second)."""
+    if b is None:
+        return 0.0
+    s = float(np.hypot(a.offset_sigma_mm, b.offset_sigma_mm))
+    return abs(a.offset_mm - b.offset_mm) / s if s > 0 else 0.0
 
 
 def _conditional_step(H: np.ndarray | None, n: int, cols: list[int], delta: np.ndarray
@@ -313,6 +352,30 @@ def _ranging_sigmas(cov_all: np.ndarray, sandwich: np.ndarray | None, rv: np.nda
         share = float(np.mean((dark > 0) & (dark < 1)))
         v[1] += (0.5 * abs(rv[1]) * share) ** 2 / 3.0
     return np.sqrt(v)
+
+
+def _prior_conflicts(rv: np.ndarray, prior_arrays: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Ranging terms the fit put more than ``PRIOR_CONFLICT`` prior sigmas from the prior's
+    mean (:data:`lidarcal.ranging.PRIOR_CONFLICT`): the data contradict the prior."""
+    mu, sd = prior_arrays[0][:len(rv)], prior_arrays[1][:len(rv)]
+    return np.abs(rv - mu) > PRIOR_CONFLICT * sd
+
+
+def _conflict_warnings(rv: np.ndarray, conflict: np.ndarray, prior: RangingPrior) -> list[str]:
+    """The warning for each term held because it contradicted its prior."""
+    out = []
+    sds = (prior.offset_sigma_mm, prior.dark_extra_sigma_mm)
+    mus = (prior.offset_mm, prior.dark_extra_mm)
+    for j in np.flatnonzero(conflict):
+        what = "range offset" if j == 0 else "extra range of dark squares"
+        out.append(f"the fit put the {what} at {rv[j]:.4g} mm, {abs(rv[j] - mus[j]) / sds[j]:.0f} "
+                   f"sigmas of its prior ({mus[j]:g} +- {sds[j]:g} mm, {prior.source}) from the "
+                   "prior's mean: the scans do not separate it from the LiDAR's position (noisy or "
+                   "biased ranges?); the rig is fitted again with ranges taken as exact (no ranging "
+                   "model; its sigmas do not include a range offset); if the LiDAR really reads "
+                   "that far off, give lidar.range_offset_mm and lidar.range_offset_sigma_mm in "
+                   "dataset.json")
+    return out
 
 
 def _ranging_model(rv: np.ndarray, sig: np.ndarray, n_rng: int, prior: RangingPrior,

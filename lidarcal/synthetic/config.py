@@ -39,6 +39,7 @@ class RigConfig:
     image_border_px: float = 8.0                   # whole boards at least this far inside the image
     wall_distance_mm: Range = (2300.0, 3400.0)     # background wall (z), behind the V
     wall_tilt_deg: float = 10.0
+    wall_min_gap_mm: float = 400.0                 # wall at least this far behind the hinge (z)
     post_radius_mm: Range = (12.0, 25.0)           # stand under the hinge and a pole beside the V
     # --- LiDAR ---
     lidar_angle_min_deg: float = -35.0
@@ -47,6 +48,7 @@ class RigConfig:
     lidar_range_min_mm: float = 700.0
     lidar_range_max_mm: float = 3000.0
     range_noise_mm: float = 1.0                    # Gaussian range noise, 1 sigma
+    range_noise_rel: float = 0.0                   # plus this fraction of the range (0.01: 1 %), 1 sigma
     beam_exit_mm: float = 1.5                      # footprint diameter (1/e^2) at the exit window
     beam_divergence_mrad: float = 1.5              # full-angle divergence (1/e^2)
     footprint_rings: int = 3                       # sub-ray rings across the footprint
@@ -54,6 +56,8 @@ class RigConfig:
     detect_energy: float = 0.12                    # minimum returned energy for an echo
     lidar_offset_mm: tuple[Range, Range, Range] = ((-60.0, 60.0), (100.0, 200.0), (80.0, 180.0))
     lidar_misalign_deg: float = 3.0                # random roll / yaw of the LiDAR mount
+    lidar_roll_deg: float = 0.0                    # mount roll about the LiDAR x axis (180: upside down)
+    lidar_yaw_deg: float = 0.0                     # mount yaw: the V seen at beam angle -lidar_yaw_deg
     # --- turntable ---
     n_positions: int = 87
     psi_step_deg: float = 0.25

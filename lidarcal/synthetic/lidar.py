@@ -20,7 +20,7 @@ the disc) and the wall behind it reports a "mixed pixel" floating between
 them, in proportion to their energies. No return (0) when the total returned
 energy is below ``detect_energy`` or the range is outside
 ``[range_min, range_max]``. Then Gaussian range noise (``range_noise_mm``)
-is added; in the harsh preset ``spurious_rate`` of the beams get a uniform
+(plus ``range_noise_rel`` times the range) is added; in the harsh preset ``spurious_rate`` of the beams get a uniform
 random range and ``drop_rate`` of them return nothing. Ranges are rounded to
 0.1 mm as written.
 
@@ -259,6 +259,8 @@ def simulate_scans(surfaces: list, R: np.ndarray, T: np.ndarray, rig: RigConfig,
     out = apply_ranging_errors(out, rig, "offset")
     ok = out > 0
     out = out + ok * rng.normal(0.0, rig.range_noise_mm, out.shape)
+    if rig.range_noise_rel > 0:          # a cheap scanner: noise growing with the range
+        out = out + ok * rng.normal(0.0, 1.0, out.shape) * rig.range_noise_rel * out
     if rig.spurious_rate > 0:
         spur = rng.random(out.shape) < rig.spurious_rate
         out[spur] = rng.uniform(rig.lidar_range_min_mm, rig.lidar_range_max_mm, int(spur.sum()))

@@ -11,7 +11,7 @@ rounding and clipping to 8 bits.
 Stripe images (section 1.3): the laser sheet is the LiDAR scan plane at that
 position. A surface point at distance ``dist`` from the plane receives
 ``peak * albedo * exp(-dist^2 / (2 sigma^2)) * cos(incidence) * (r_ref / r)^2``
-when it lies inside the LiDAR's aperture, in front of it, and is not shadowed
+when it lies inside the LiDAR's aperture (in front of it when that is within +-90 deg), and is not shadowed
 (a ray from the LiDAR centre reaches it first). Only pixels whose centre point
 lies within a few sigma of the plane (plus the pixel's footprint on the
 surface) are evaluated.
@@ -41,6 +41,14 @@ from .scene import (
     trace,
 )
 
+
+def _front(ql: np.ndarray, rig) -> np.ndarray:
+    """LiDAR-frame points the scanner can see by their side: in front (x > 0) for an aperture
+    within +-90 deg (then the angle test alone would also pass points behind), any side for a
+    wider one (270 or 360 deg scanners)."""
+    if max(abs(rig.lidar_angle_min_deg), abs(rig.lidar_angle_max_deg)) > 90.0:
+        return np.ones(len(ql), bool)
+    return ql[:, 0] > 0
 
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """OpenCV's distortion (k1, k2, p1, p2, k3) of normalised coordinates (..., 2)."""
@@ -272,7 +280,7 @@ def stripe_signal(rays: RayMap, view: SceneView, surfaces: list, pose: Pose, rig
         ql = pose.inverse_apply(view.points.reshape(-1, 3)[cand].astype(float))
         ang = np.degrees(np.arctan2(ql[:, 1], ql[:, 0]))
         margin = 2.0
-        keep = (ql[:, 0] > 0) & (ang >= rig.lidar_angle_min_deg - margin) & (ang <= rig.lidar_angle_max_deg + margin)
+        keep = _front(ql, rig) & (ang >= rig.lidar_angle_min_deg - margin) & (ang <= rig.lidar_angle_max_deg + margin)
         cand = cand[keep | ~np.isfinite(view.footprint.ravel()[cand])]
     out = np.zeros(h * w, np.float32)
     if len(cand) == 0:
@@ -308,7 +316,7 @@ def stripe_signal(rays: RayMap, view: SceneView, surfaces: list, pose: Pose, rig
         q = p[on]
         ql = pose.inverse_apply(q)
         ang = np.degrees(np.arctan2(ql[:, 1], ql[:, 0]))
-        inside = (ql[:, 0] > 0) & (ang >= rig.lidar_angle_min_deg) & (ang <= rig.lidar_angle_max_deg)
+        inside = _front(ql, rig) & (ang >= rig.lidar_angle_min_deg) & (ang <= rig.lidar_angle_max_deg)
         # shadows: the first surface along the ray from the LiDAR centre must be this point
         ray = q - pose.T
         t2, _ = trace(surfaces, ray, origins=pose.T)

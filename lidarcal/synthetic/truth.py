@@ -307,7 +307,7 @@ def _stripe_ok(boards: list[BoardTruth], R: np.ndarray, T: np.ndarray, rig: RigC
             q = np.einsum("nji,nj->ni", R, p - T)
             ang = np.degrees(np.arctan2(q[:, 1], q[:, 0]))
             rr = np.hypot(q[:, 0], q[:, 1])
-            if (np.any(ang < amin) or np.any(ang > amax) or np.any(q[:, 0] <= 0)
+            if (np.any(ang < amin) or np.any(ang > amax)  # the aperture (any side of the scanner)
                     or np.any(rr < rig.lidar_range_min_mm * 1.05) or np.any(rr > rig.lidar_range_max_mm * 0.95)):
                 return False
     return True
@@ -325,7 +325,9 @@ def _sample_calibration(rng: np.random.Generator, rig: RigConfig, seed: int, str
     z0 = unit(-_DOWN - (-_DOWN @ x0) * x0)
     R0 = np.column_stack([x0, np.cross(z0, x0), z0])
     mis = np.radians(rig.lidar_misalign_deg)
-    R_mid = rotation_about_axis(z0, rng.uniform(-mis, mis)) @ rotation_about_axis(x0, rng.uniform(-mis, mis)) @ R0
+    yaw = rng.uniform(-mis, mis) + np.radians(rig.lidar_yaw_deg)
+    roll = rng.uniform(-mis, mis) + np.radians(rig.lidar_roll_deg)
+    R_mid = rotation_about_axis(z0, yaw) @ rotation_about_axis(x0, roll) @ R0
     pose_mid = Pose(R_mid, T_mid)
     # turntable axis: along +-camera x, tilted; passes lever_arm from the LiDAR centre
     k = _tilted(np.array([1.0, 0, 0]), rig.axis_tilt_deg, rng) * (1.0 if rng.random() < 0.5 else -1.0)
@@ -343,7 +345,7 @@ def _sample_calibration(rng: np.random.Generator, rig: RigConfig, seed: int, str
         return None
     # background wall and the posts
     wall_n = _tilted(_FORWARD, rig.wall_tilt_deg, rng)
-    wall_z = max(_uniform(rng, rig.wall_distance_mm), hinge.point[2] + 400)
+    wall_z = max(_uniform(rng, rig.wall_distance_mm), hinge.point[2] + rig.wall_min_gap_mm)
     wall = InfinitePlane(wall_n, float(wall_n @ np.array([0, 0, wall_z])))
     h = hinge.direction
     bis = unit(sum(b.rect.e_u for b in boards))

@@ -80,6 +80,14 @@ def sweep_csv_gz(psi_deg: np.ndarray, angles_deg: np.ndarray, ranges_mm: np.ndar
     return buf.getvalue()
 
 
+def z_axis_hint(truth: RigTruth) -> list[int]:
+    """``lidar.z_axis_hint`` as a user would write it: the camera axis (``[0, -1, 0]`` = up)
+    nearest to the LiDAR's true z axis at the middle position (``[0, 1, 0]`` upside down)."""
+    z = truth.pose_ref.z_axis
+    i = int(np.argmax(np.abs(z)))
+    return [int(np.sign(z[i])) if j == i else 0 for j in range(3)]
+
+
 def dataset_json(truth: RigTruth, with_intrinsics: bool, with_sweeps: bool) -> dict:
     """The ``dataset.json`` of a simulated dataset (rig description, no truth)."""
     rig = truth.rig
@@ -92,7 +100,7 @@ def dataset_json(truth: RigTruth, with_intrinsics: bool, with_sweeps: bool) -> d
     out["v_board"] = {"inner_corners": list(rig.v_inner_corners), "square_mm": rig.v_square_mm}
     out["lidar"] = {"angle_min_deg": rig.lidar_angle_min_deg, "angle_max_deg": rig.lidar_angle_max_deg,
                     "angle_step_deg": rig.lidar_angle_step_deg, "range_min_mm": rig.lidar_range_min_mm,
-                    "range_max_mm": rig.lidar_range_max_mm, "z_axis_hint": [0, -1, 0]}
+                    "range_max_mm": rig.lidar_range_max_mm, "z_axis_hint": z_axis_hint(truth)}
     out["measurements"] = [{"name": d.name, "sweep": f"measure/{d.name}.csv.gz", "object": "disc",
                             "reference_diameter_mm": float(2 * d.disc.radius)}
                            for d in (truth.discs if with_sweeps else [])]
