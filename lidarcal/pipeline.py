@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import __version__
-from .board import BoardView, find_boards, find_v_boards
+from .board import BoardView, find_boards, find_v_boards, small_square_warnings
 from .camera import IntrinsicsResult, add_views, calibrate_intrinsics
 from .geometry import Pose
 from .io.dataset import (
@@ -373,6 +373,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
     rigid = fit_rigid(psi, samples, init=paper)
     mark("fits")
     warnings += _setup_warnings(psi, results)
+    warnings += small_square_warnings(boards, ds.v_board, ds.board_image)
     warnings += list(intr.warnings) if intr is not None else []
     res = CalibrationResult(ds, camera, intr, boards, results, skipped, paper, rigid, method,
                             warnings, dataset_sha256=sha256)

@@ -48,49 +48,65 @@ def _K(fx: float, fy: float, cx: float, cy: float) -> tuple:
     return ((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0))
 
 
+def _v(base: RigConfig, **changes) -> tuple[RigConfig, dict]:
+    return base, changes
+
+
 # name -> (base, changes). Distances keep the V in the image for the camera's field of view.
 VARIANTS: dict[str, tuple[RigConfig, dict]] = {
     "paper": (PAPER, {}),
     "wide": (WIDE, {}),
     # --- cameras ---
-    "cam_vga": (PAPER, dict(image_size=(640, 480), K=_K(500, 500, 322, 238),
-                            dist=(-0.05, 0.02, 0, 0, 0), v_inner_corners=(6, 9), v_square_mm=40.0,
-                            hinge_distance_mm=(900.0, 1000.0))),
-    "cam_752": (PAPER, dict(image_size=(752, 480), K=_K(480, 480, 380, 236),
-                            dist=(-0.28, 0.08, 0, 0, 0), v_inner_corners=(6, 9), v_square_mm=40.0,
-                            hinge_distance_mm=(850.0, 950.0), camera_in_dataset=False,
-                            intrinsics_square_mm=40.0)),
-    "cam_4k": (PAPER, dict(image_size=(3840, 2160), K=_K(3000, 3000, 1920, 1080),
-                           dist=(-0.08, 0.1, 0, 0, 0), supersample=2)),
-    "cam_barrel": (WIDE, dict(dist=(-0.4, 0.2, 0.0, 0.0, -0.05))),
-    "cam_barrel_ds": (WIDE, dict(dist=(-0.4, 0.2, 0.0, 0.0, -0.05), camera_in_dataset=True)),
-    "cam_tangential": (WIDE, dict(dist=(-0.3, 0.12, 0.004, -0.003, -0.02))),
-    "cam_nonsquare": (PAPER, dict(K=_K(2757.4, 2812.5, 831.6, 638.9), camera_in_dataset=False)),
-    "cam_pp_off": (PAPER, dict(K=_K(2757.4, 2758.6, 1000.0, 480.0), camera_in_dataset=False)),
-    "cam_photos": (PAPER, dict(camera_in_dataset=False)),
-    "cam_intr_7x5": (WIDE, dict(intrinsics_inner_corners=(7, 5), intrinsics_square_mm=40.0)),
-    "cam_intr_11x8": (WIDE, dict(intrinsics_inner_corners=(11, 8), intrinsics_square_mm=22.0)),
-    "cam_intr_6views": (WIDE, dict(n_intrinsics_views=6)),
+    "cam_vga": _v(PAPER, image_size=(640, 480), K=_K(500, 500, 322, 238),
+                  dist=(-0.05, 0.02, 0, 0, 0), v_inner_corners=(6, 9), v_square_mm=40.0,
+                  hinge_distance_mm=(900.0, 1000.0)),
+    "cam_752": _v(PAPER, image_size=(752, 480), K=_K(480, 480, 380, 236),
+                  dist=(-0.28, 0.08, 0, 0, 0), v_inner_corners=(6, 9), v_square_mm=40.0,
+                  hinge_distance_mm=(850.0, 950.0), camera_in_dataset=False,
+                  intrinsics_square_mm=40.0),
+    "cam_4k": _v(PAPER, image_size=(3840, 2160), K=_K(3000, 3000, 1920, 1080),
+                  dist=(-0.08, 0.1, 0, 0, 0), supersample=2),
+    "cam_barrel": _v(WIDE, dist=(-0.4, 0.2, 0.0, 0.0, -0.05)),
+    "cam_barrel_ds": _v(WIDE, dist=(-0.4, 0.2, 0.0, 0.0, -0.05), camera_in_dataset=True),
+    "cam_tangential": _v(WIDE, dist=(-0.3, 0.12, 0.004, -0.003, -0.02)),
+    "cam_nonsquare": _v(PAPER, K=_K(2757.4, 2812.5, 831.6, 638.9), camera_in_dataset=False),
+    "cam_pp_off": _v(WIDE, K=_K(1187.0, 1189.5, 1150.0, 470.0)),
+    "cam_photos": _v(PAPER, camera_in_dataset=False),
+    "cam_intr_7x5": _v(WIDE, intrinsics_inner_corners=(7, 5), intrinsics_square_mm=40.0),
+    "cam_intr_11x8": _v(WIDE, intrinsics_inner_corners=(11, 8), intrinsics_square_mm=22.0),
+    "cam_intr_6views": _v(WIDE, n_intrinsics_views=6),
     # --- V-boards ---
-    "v_9x6": (WIDE, dict(v_inner_corners=(9, 6))),
-    "v_6x9": (WIDE, dict(v_inner_corners=(6, 9))),
-    "v_8x11": (WIDE, dict(v_inner_corners=(8, 11), v_square_mm=25.0)),
-    "v_5x7": (WIDE, dict(v_inner_corners=(5, 7), v_square_mm=40.0)),
-    "v_7x5": (WIDE, dict(v_inner_corners=(7, 5), v_square_mm=40.0)),
-    "v_sq15": (PAPER, dict(v_inner_corners=(19, 27), v_square_mm=15.0)),
-    "v_sq60": (WIDE, dict(v_inner_corners=(4, 6), v_square_mm=60.0)),
-    "v_small_far": (PAPER, dict(v_inner_corners=(7, 10), v_square_mm=20.0,
-                                hinge_distance_mm=(2200.0, 2300.0), wall_distance_mm=(3000.0, 3400.0),
-                                lidar_range_max_mm=4000.0)),
-    "v_tiny_squares": (WIDE, dict(v_inner_corners=(7, 10), v_square_mm=15.0,
-                                  hinge_distance_mm=(2400.0, 2500.0), wall_distance_mm=(3000.0, 3600.0))),
-    "v_fill": (WIDE, dict(hinge_distance_mm=(600.0, 640.0), image_border_px=4.0)),
-    "v_margin_0.5": (WIDE, dict(v_margin_squares=0.5)),
-    "v_margin_2": (WIDE, dict(v_margin_squares=2.0)),
-    "v_angle_90": (WIDE, dict(v_angle_deg=(90.0, 92.0))),
-    "v_angle_150": (WIDE, dict(v_angle_deg=(148.0, 150.0))),
-    "v_near": (PAPER, dict(hinge_distance_mm=(1000.0, 1050.0))),
-    "v_far": (PAPER, dict(hinge_distance_mm=(1800.0, 1900.0), wall_distance_mm=(2600.0, 3400.0))),
+    "v_9x6": _v(WIDE, v_inner_corners=(9, 6)),
+    "v_6x9": _v(WIDE, v_inner_corners=(6, 9)),
+    "v_8x11": _v(WIDE, v_inner_corners=(8, 11), v_square_mm=25.0),
+    "v_5x7": _v(WIDE, v_inner_corners=(5, 7), v_square_mm=40.0),
+    "v_7x5": _v(WIDE, v_inner_corners=(7, 5), v_square_mm=40.0),
+    "v_7x9": _v(WIDE, v_inner_corners=(7, 9)),     # both odd: a point-symmetric pattern
+    "v_8x6": _v(WIDE, v_inner_corners=(8, 6)),     # both even
+    "v_sq15": _v(PAPER, v_inner_corners=(19, 27), v_square_mm=15.0),
+    "v_sq60": _v(WIDE, v_inner_corners=(4, 6), v_square_mm=60.0),
+    # small boards far away (pixels per square ~ fx * square / distance; a short turntable
+    # span keeps both stripes on the small boards)
+    "v_small_far": _v(PAPER, v_inner_corners=(7, 10), v_square_mm=20.0, psi_step_deg=0.3,
+                      hinge_distance_mm=(2200.0, 2300.0), wall_distance_mm=(3000.0, 3400.0),
+                      lidar_range_max_mm=4000.0),
+    "v_tiny_8px": _v(WIDE, v_inner_corners=(7, 10), v_square_mm=15.0, psi_step_deg=0.25,
+                     hinge_distance_mm=(2200.0, 2250.0), wall_distance_mm=(3000.0, 3600.0)),
+    "v_tiny_5px": _v(WIDE, v_inner_corners=(7, 10), v_square_mm=10.0, psi_step_deg=0.2,
+                     hinge_distance_mm=(2350.0, 2400.0), wall_distance_mm=(3000.0, 3600.0)),
+    "v_tiny_6px": _v(WIDE, v_inner_corners=(10, 14), v_square_mm=10.0, psi_step_deg=0.2,
+                     hinge_distance_mm=(1950.0, 2000.0), wall_distance_mm=(2600.0, 3000.0)),
+    "v_tiny_3px": _v(WIDE, v_inner_corners=(14, 20), v_square_mm=6.0, psi_step_deg=0.1,
+                     hinge_distance_mm=(2000.0, 2050.0), wall_distance_mm=(2600.0, 3000.0)),
+    "v_fill": _v(WIDE, hinge_distance_mm=(600.0, 640.0), image_border_px=4.0),
+    "v_margin_0.25": _v(WIDE, v_margin_squares=0.25),
+    "v_margin_0.5": _v(WIDE, v_margin_squares=0.5),
+    "v_margin_2": _v(WIDE, v_margin_squares=2.0),
+    "v_angle_90": _v(WIDE, v_angle_deg=(90.0, 92.0)),
+    "v_angle_150": _v(WIDE, v_angle_deg=(148.0, 150.0)),
+    "v_near": _v(PAPER, v_inner_corners=(10, 14), hinge_distance_mm=(950.0, 1000.0)),
+    "v_far": _v(PAPER, psi_step_deg=0.15, hinge_distance_mm=(1800.0, 1900.0),
+                wall_distance_mm=(2600.0, 3400.0)),
 }
 
 
@@ -106,7 +122,7 @@ def evaluate(ds: Path, cal: dict) -> dict:
     est = {int(p["index"]): Pose.from_dict(p) for p in cal["poses"]}
     e = pose_errors(est, truth)
     ax = axis_direction_error_deg(np.array(cal["model"]["axis"]["direction"]),
-                                  np.array(truth["axis"]["direction"]))
+                  np.array(truth["axis"]["direction"]))
     planes = [Plane(np.asarray(b["normal"], float), float(b["d_mm"])) for b in cal["boards"]]
     true_planes = truth_board_planes(truth)
     normal = max(min(plane_error(p, t)["normal_deg"] for t in true_planes) for p in planes)
@@ -125,8 +141,8 @@ def run_variant(name: str, seed: int, positions: int, work: Path) -> dict:
     base, changes = VARIANTS[name]
     # the preset's turntable span with fewer positions (the axis stays as well determined)
     step = base.psi_step_deg * (base.n_positions - 1) / max(positions - 1, 1)
-    rig = base.with_(name=f"{base.name}-{name}", n_positions=positions, psi_step_deg=round(step, 4),
-                     **changes)
+    rig = base.with_(name=f"{base.name}-{name}", n_positions=positions,
+                     **{"psi_step_deg": round(step, 4), **changes})
     ds, out = work / f"{name}_s{seed}", work / f"{name}_s{seed}_out"
     row: dict = {"variant": name, "seed": seed}
     try:
@@ -136,7 +152,7 @@ def run_variant(name: str, seed: int, positions: int, work: Path) -> dict:
     truth = json.loads((ds / "truth.json").read_text())
     row["sq_px"] = _square_px(rig, truth)
     p = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(ds), "--out", str(out)],
-                       capture_output=True, text=True, check=False)
+                  capture_output=True, text=True, check=False)
     row["rc"] = p.returncode
     cal_path = out / "calibration.json"
     if p.returncode != 0 or not cal_path.exists():
@@ -191,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
             r = run_variant(name, seed, args.positions, work)
             rows.append(r)
             cells = [f"{_fmt(r.get(c)):16s}" if i == 0 else f"{_fmt(r.get(c)):>4s}" if i == 1
-                     else f"{_fmt(r.get(c)):>11s}" for i, c in enumerate(COLUMNS)]
+                  else f"{_fmt(r.get(c)):>11s}" for i, c in enumerate(COLUMNS)]
             print(" ".join(cells), " ", r.get("note", "")[:300], flush=True)
     if args.csv is not None:
         import pandas as pd
