@@ -487,8 +487,9 @@ def _small_squares_hint(found: BoardView, board: BoardSpec) -> str:
 
 
 #: squares (px) below which the board planes from board.png are weak: on rendered wide rigs
-#: (``scripts/rig_sweep.py``, true errors) the planes' normals were 0.01 deg off with 45 px
-#: squares, 0.40 deg with 8 px and 0.76-1.04 deg with 6 px (centre errors up to 57 mm)
+#: (``scripts/rig_sweep.py``, true errors) the solvePnP planes' normals were 0.005 deg off
+#: with 45 px squares, 0.04 deg with 8 px and 0.04-0.1 deg with 6 px (the homography planes
+#: of eqs. 2-3: 0.4-1 deg); the joint fit's centre error 1.5-57 mm (a 2-deg sweep)
 WEAK_SQUARE_PX = 10.0
 
 
@@ -501,7 +502,7 @@ def small_square_warnings(boards: tuple[BoardView, BoardView], board: BoardSpec,
         return []
     return [(f"{path}: the V's squares are only {min(sides):.1f} px wide in the image (under "
             f"{WEAK_SQUARE_PX:.0f} px the board planes are weak: on rendered rigs their normals "
-            "were 0.4-1 deg off, the LiDAR centre up to tens of mm); move the camera nearer the "
+            "were 10-20 times further off than with 45 px squares); move the camera nearer the "
             "V, use a longer lens or a board with bigger squares")]
 
 

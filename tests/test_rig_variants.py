@@ -73,7 +73,8 @@ def _tiny_square_rig(square_mm: float, hinge_mm: float):
 
 def test_small_squares_warn_and_too_small_squares_fail_naming_the_size(tmp_path, small_dataset):
     """V squares of ~8 px (wide camera, 15 mm squares at 2.2 m): both boards are found but
-    their planes are weak (0.4 deg normals measured by scripts/rig_sweep.py): check and
+    their planes are weak (solvePnP normals 0.04 deg off against 0.005 with 45 px squares,
+    scripts/rig_sweep.py): check and
     calibrate's board step warn, naming board.png and the size. ~5 px (10 mm at 2.4 m): the
     detector loses a board; the error (exit 2) says the squares are too small."""
     from lidarcal.board import find_boards, small_square_warnings
