@@ -219,6 +219,7 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
         camera_for,
         dataset_albedo,
         find_boards,
+        small_square_warnings,
     )
     from .workbook import summarise_dataset
 
@@ -262,6 +263,8 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
                          f"(median {s.psi_step_deg:g})")
     good = [p for p in res.positions if p.detected]
     res.notes += _setup_warnings(np.array([p.psi_deg for p in good]) if good else psi, good)
+    if boards is not None:
+        res.notes += small_square_warnings(boards, ds.v_board, ds.board_image)
     if boards is not None and len(good) < MIN_POSITIONS:
         res.problems.append(f"{ds.root / 'positions.csv'}: only {len(good)} usable position(s), "
                             f"the turntable fit needs at least {MIN_POSITIONS}; capture more "

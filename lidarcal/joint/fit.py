@@ -53,7 +53,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
                    correlated: bool = True,
                    corner_floor_px: float = CORNER_FLOOR_PX, jitter: bool = True,
                    ranging: bool = True, ranging_prior: RangingPrior | None = None,
-                   plane_prior: PlanePrior | None = None) -> JointModel:
+                   plane_prior: PlanePrior | None = None,
+                   board_cov: np.ndarray | None = None) -> JointModel:
     """Joint fit on prepared observations; ``starts`` are pose functions (axis + ``pose``).
 
     See :func:`fit_joint`. Every start is refined once with the start's noise
@@ -64,7 +65,9 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     estimated with the rig (:mod:`lidarcal.ranging`), under ``ranging_prior``
     (default: the wide :class:`lidarcal.ranging.RangingPrior`). With ``plane_prior``
     (:mod:`lidarcal.joint.planes_prior`) the board poses are parameters under that prior
-    instead of the corners' residuals (``fit_planes`` is implied).
+    instead of the corners' residuals (``fit_planes`` is implied). ``board_cov`` (12, 12):
+    the held board poses' covariance for the consider term of the rig covariance (default:
+    the corners' own, :mod:`lidarcal.joint`); the estimate does not depend on it.
     """
     if plane_prior is not None:  # the prior stands for the corners (their information in it)
         fit_planes = True
@@ -111,6 +114,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         if step is None:
             prob, xs = _Problem(data, base, psi_ref, n_rng, prior_arrays), x0
             prob.board_prior = plane_prior
+            prob.board_cov = board_cov
             prob.classify(_full(x0))
             prob.set_stripe_scale(_full(x0))
             prob.estimate_noise(x0, correlated=False)
@@ -159,6 +163,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
                        prior_arrays)
         out.t = t
         out.board_prior = prob.board_prior
+        out.board_cov = prob.board_cov
         out.scale_px, out.scan, out.stripe, out.dark = prob.scale_px, prob.scan, prob.stripe, prob.dark
         out.scale_depth = prob.scale_depth
         out.sigma_corner = prob.sigma_corner
@@ -561,12 +566,19 @@ def fit_joint(result, *, fit_planes: bool = False, loss: str = "soft_l1", stripe
     ds = getattr(result, "dataset", None)
     if ranging_prior is None and getattr(ds, "raw", None) is not None:
         ranging_prior = _ranging_prior(ds.raw, ds.dataset_json)
-    prior = None
+    prior, board_cov = None, None
+    intrinsics = getattr(result, "intrinsics", None)
     if plane_prior:
         from .planes_prior import plane_prior_of
 
-        prior = plane_prior_of(data, getattr(result, "intrinsics", None), corner_floor_px)
+        prior = plane_prior_of(data, intrinsics, corner_floor_px)
+    elif not fit_planes and intrinsics is not None and data.corners_px is not None:
+        # planes held, camera from photos: the intrinsics' error moves both board poses (and
+        # with them the rig) coherently; their covariance carries it into every sigma
+        from .planes_prior import plane_prior_of
+
+        board_cov = plane_prior_of(data, intrinsics, corner_floor_px).cov
     return fit_joint_data(data, [result.rigid_model, result.paper_model], fit_planes=fit_planes,
                           loss=loss, psi_ref_deg=psi_ref_deg, correlated=correlated,
                           corner_floor_px=corner_floor_px, jitter=jitter, ranging=ranging,
-                          ranging_prior=ranging_prior, plane_prior=prior)
+                          ranging_prior=ranging_prior, plane_prior=prior, board_cov=board_cov)

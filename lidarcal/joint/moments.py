@@ -562,7 +562,10 @@ def moments_covariance(prob: _Problem, loss: str, f_scale: float
     meat = S.T @ S * (G / max(G - 1, 1))
     prob.sandwich = Hx_inv @ meat @ Hx_inv
     C = Hx_inv
-    if has_corners:
+    if prob.board_cov is not None:  # the held planes' covariance given (intrinsics included)
+        A = Hx_inv @ Hxb
+        C = C + A @ prob.board_cov @ A.T
+    elif has_corners:
         Jc = prob.corner_jacobian(np.zeros(N_RIG + 2 * N_BOARD)) / prob.sigma_corner
         Jc *= np.sqrt(wc)[:, None] * prob.sigma_corner / max(prob.sigma_corner, prob.corner_floor_px)
         Pb, _ = _inverse(Jc.T @ Jc)

@@ -60,6 +60,10 @@ class _Problem:
         # the board poses' prior (lidarcal.joint.planes_prior.PlanePrior): 12 pseudo-residuals
         # after the ranging prior when the boards are parameters; None: no such rows
         self.board_prior = None
+        # planes held: the board poses' covariance (12, 12) for the consider term when it is
+        # more than the corners' (the intrinsics' uncertainty of a camera from photos,
+        # lidarcal.joint.planes_prior); None: from the corner rows
+        self.board_cov: np.ndarray | None = None
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rig + boards part of ``x``, ranging terms (2,) in mm)."""

@@ -204,7 +204,10 @@ def _covariance_rows(prob: _Problem, fit_planes: bool, loss: str, f_scale: float
     # planes held fixed: rig covariance from scans + stripes, plus the planes' own
     # uncertainty from the corners propagated ("consider" covariance)
     C = Hx_inv
-    if has_corners:
+    if prob.board_cov is not None:  # the held planes' covariance given (intrinsics included)
+        A = Hx_inv @ _mm(Jx.T, Jb)
+        C = C + A @ prob.board_cov @ A.T
+    elif has_corners:
         Jc = Jw[n_main:][:, bi]
         Pb, _ = _inverse(_mm(Jc.T, Jc))
         A = Hx_inv @ _mm(Jx.T, Jb)
