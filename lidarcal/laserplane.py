@@ -27,7 +27,7 @@ from .board import board_view
 from .camera import backproject_to_plane, detect_chessboard
 from .geometry import Plane, fit_plane
 from .io.dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
-from .laser_colour import SATURATED_DN, detect_laser_colour, laser_response
+from .laser_colour import SATURATED_DN, along_stripe, detect_laser_colour, laser_response
 from .stripe import stripe_centres
 from .stripe_quality import quality_problem
 
@@ -41,6 +41,8 @@ MIN_OUTLIER_MM = 0.3
 MIN_PHOTOS = 2
 #: a board whose corners fit its pose worse than this (rms, px) is not used
 MAX_BOARD_RMS_PX = 1.0
+#: the board is searched in photos larger than this (px, longer side) reduced to it first
+BOARD_SEARCH_PX = 1600
 #: below this ratio of the 2nd to the 1st singular value of the points the stripes are
 #: (nearly) parallel and the plane is not determined
 MIN_SPREAD = 0.02
@@ -133,54 +135,98 @@ def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
     The detector and the corner refinement see the photo without the laser
     (:func:`board_gray` with ``paint``; it breaks the detector and pulls corners); the
     pattern is tried as given and swapped (8x5 = 5x8), the detector's exhaustive mode
-    last. Returns the corners and the board spec they match.
+    last; a photo larger than ``BOARD_SEARCH_PX`` is searched reduced to it first (the
+    corners refined at full size). Returns the corners and the board spec they match.
     """
     clean = board_gray(image, colour, response, paint)
+    down = min(1.0, BOARD_SEARCH_PX / max(clean.shape[:2]))  # large photos: searched reduced
     c, r = board.inner_corners
     specs = (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,)
     for exhaustive in (False, True):
         for spec in specs:
-            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive)
+            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive,
+                                        downscale=down)
             if corners is not None:
                 return corners, spec
     return None
+
+
+def max_board_rms_px(camera: CameraModel) -> float:
+    """The largest corner reprojection rms (px) of a usable board: ``MAX_BOARD_RMS_PX`` per
+    1000 px of focal length, at least ``MAX_BOARD_RMS_PX`` (an angle, ~1 mrad: the same
+    board misfit in a 12 MP photo spans six times the pixels of a VGA one)."""
+    return MAX_BOARD_RMS_PX * max(1.0, float(camera.K[0][0]) / 1000.0)
+
+
+def read_photo(path: Path, image_size: tuple[int, int]) -> tuple[np.ndarray | None, str | None]:
+    """The photo (BGR) in the camera's orientation, or its problem.
+
+    OpenCV turns a JPEG by its EXIF orientation tag; a phone held upright stores the
+    sensor's (landscape) pixels and tags them "rotate 90": turned, the photo no longer
+    has the camera's size. The photo is read turned (as ``lidarcal intrinsics`` reads
+    its photos) and, when that does not fit the camera but the sensor's own orientation
+    (``cv2.IMREAD_IGNORE_ORIENTATION``) does, as stored.
+    """
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        return None, "cannot be decoded as an image"
+    size = tuple(int(v) for v in image_size)
+    if (img.shape[1], img.shape[0]) != size:
+        raw = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if raw is not None and (raw.shape[1], raw.shape[0]) == size:
+            return raw, None
+        return None, (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
+                      f"{size[0]}x{size[1]}")
+    return img, None
+
+
+def square_side_and_edges(corners_px: np.ndarray, board: BoardSpec
+                          ) -> tuple[float, tuple[float, float]]:
+    """A square's side (px, median of neighbouring corners' distances) and the image
+    directions (deg, 0-180) of the board's rows and columns of corners."""
+    c, r = board.inner_corners
+    g = np.asarray(corners_px, float).reshape(r, c, 2)
+    dx, dy = np.diff(g, axis=1).reshape(-1, 2), np.diff(g, axis=0).reshape(-1, 2)
+    side = float(np.median(np.hypot(*np.vstack([dx, dy]).T)))
+    ang = tuple(float(np.degrees(np.arctan2(v[1], v[0])) % 180)
+                for v in (dx.mean(0), dy.mean(0)))
+    return side, ang
 
 
 def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
                   laser_colour: str = "auto") -> PhotoResult:
     """Stripe centres and 3D stripe points (eq. 5) of one photo, or its problem."""
     res = PhotoResult(path.name)
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        res.problem = "cannot be decoded as an image"
-        return res
-    if (img.shape[1], img.shape[0]) != tuple(camera.image_size):
-        res.problem = (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
-                       f"{camera.image_size[0]}x{camera.image_size[1]}")
+    img, problem = read_photo(path, camera.image_size)
+    if problem:
+        res.problem = problem
         return res
     colour = detect_laser_colour(img) if laser_colour == "auto" else laser_colour
     response = laser_response(img, colour)
     # only the laser's clipped core painted out first (corners under the stripe keep their
     # own pixels), then the whole visible laser: the board pose that fits its corners best
-    view = None
+    view, found_spec = None, board
     for paint in ("core", "laser"):
         found = find_board(img, board, response, colour, paint)
         if found is not None:
             v = board_view(camera, found[0], found[1])
             if view is None or v.reprojection_rms_px[1] < view.reprojection_rms_px[1]:
-                view = v
-            if view.reprojection_rms_px[1] <= MAX_BOARD_RMS_PX / 2:
+                view, found_spec = v, found[1]
+            if view.reprojection_rms_px[1] <= max_board_rms_px(camera) / 2:
                 break
     if view is None:
         res.problem = (f"the {board.inner_corners[0]}x{board.inner_corners[1]} chessboard "
                        "was not found")
         return res
-    if view.reprojection_rms_px[1] > MAX_BOARD_RMS_PX:
+    if view.reprojection_rms_px[1] > max_board_rms_px(camera):
         res.problem = (f"the chessboard corners do not fit one board pose (reprojection "
                        f"{view.reprojection_rms_px[1]:.2f} px)")
         return res
     mask = np.zeros(img.shape[:2], np.uint8)
     cv2.fillPoly(mask, [np.round(view.outline_px).astype(np.int32)], 1)
+    if colour in ("red", "green", "blue"):
+        side, edges = square_side_and_edges(view.corners_px, found_spec)
+        response, _ = along_stripe(response, mask.astype(bool), side, edges)
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
         float(info["fit_rms_px"])
