@@ -87,8 +87,12 @@ def laser_response(image: np.ndarray, colour: str = "auto",
         sat = img[..., _CHANNEL[colour]] >= SATURATED_DN
         if sat.any():
             r = 7  # fills cores up to ~15 px wide; far from a stripe saturated squares stay 0
-            filled = cv2.dilate(resp, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1,) * 2))
-            resp = np.where(sat, np.maximum(resp, filled), resp)
+            se = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1,) * 2)
+            filled = cv2.dilate(resp, se)
+            # a clipped white square (wider than a core every way) is not filled: the laser
+            # cannot be seen there, and the fill would copy the stripe on the next black
+            # square into it, on one side only
+            resp = np.where(sat & ~clipped_areas(img, colour), np.maximum(resp, filled), resp)
         ref = None
         if reference is not None and np.ndim(reference) == 3:
             ref = np.clip(_colour_excess(np.asarray(reference), colour), 0, 255)
@@ -97,6 +101,20 @@ def laser_response(image: np.ndarray, colour: str = "auto",
         if lit:
             resp = resp - ref
     return np.clip(np.rint(resp), 0, 255).astype(np.uint8)
+
+
+#: a clipped area of the laser's channel wider than this (px, every way) is not a stripe's core
+CORE_MAX_PX = 15
+
+
+def clipped_areas(image: np.ndarray, colour: str) -> np.ndarray:
+    """Where the laser's channel clips over an area wider than a stripe's core (bool, H x W):
+    overexposed white squares, lamps. The laser cannot be seen there (its channel is full
+    already): the core fill of :func:`laser_response` leaves them out and the stripe search
+    of :mod:`lidarcal.laserplane` keeps its profiles off them."""
+    sat = (np.asarray(image)[..., _CHANNEL[colour]] >= SATURATED_DN).view(np.uint8)
+    se = cv2.getStructuringElement(cv2.MORPH_RECT, (CORE_MAX_PX, CORE_MAX_PX))
+    return cv2.morphologyEx(sat, cv2.MORPH_OPEN, se).view(bool)
 
 
 def _line_kernel(angle: float, length_px: float) -> np.ndarray:
@@ -118,7 +136,8 @@ ALONG_SEARCH_PX = 800
 
 
 def along_stripe(response: np.ndarray, mask: np.ndarray, length_px: float,
-                 avoid_deg: tuple[float, ...] = ()) -> tuple[np.ndarray, float]:
+                 avoid_deg: tuple[float, ...] = (), smooth_px: float | None = None
+                 ) -> tuple[np.ndarray, float]:
     """The response averaged along the stripe's direction, and that direction (deg).
 
     A line laser on a flat board is a straight line in the image (a curve under lens
@@ -128,8 +147,9 @@ def along_stripe(response: np.ndarray, mask: np.ndarray, length_px: float,
     a tenth, away from the ``avoid_deg`` directions by ``EDGE_GUARD_DEG``) whose average
     over a line of ``length_px`` has the highest 99.9th percentile inside ``mask``
     (searched on the mask's box reduced to ``ALONG_SEARCH_PX``); the response is then
-    averaged over that line (symmetric: a straight stripe's centre does not move) at full
-    resolution within the mask's box (zero outside). A directional matched filter, as
+    averaged over a line of ``smooth_px`` (default ``length_px``) in that direction
+    (symmetric: a straight stripe's centre does not move) at full resolution within the
+    mask's box (zero outside). A directional matched filter, as
     line detectors by oriented filters (Freeman & Adelson 1991, steerable filters).
     """
     ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
@@ -160,6 +180,6 @@ def along_stripe(response: np.ndarray, mask: np.ndarray, length_px: float,
     fine = [best + d for d in np.arange(-ALONG_STEP_DEG / 2, ALONG_STEP_DEG / 2 + 1e-9,
                                         ALONG_STEP_DEG / 10)]
     best = float(max(fine, key=score)) % 180
-    f = cv2.filter2D(crop, -1, _line_kernel(np.radians(best), length_px))
+    f = cv2.filter2D(crop, -1, _line_kernel(np.radians(best), smooth_px or length_px))
     out[y0:y1, x0:x1] = np.clip(np.rint(f), 0, 255).astype(np.uint8)
     return out, best

@@ -2,6 +2,10 @@
 plane error against the truth (deg, mm), rms, photos used, CPU seconds; one line per kind.
 
     .venv/bin/python scripts/semireal_laser.py OUT_DIR [KIND ...] [-v]
+
+KIND: a key of lidarcal.synthetic.semireal.KINDS (default: all), or simN / simjpegN: the
+rendered photos of lidarcal.synthetic.laserphotos (seed N; 14 photos, one where the laser
+misses the board, one overexposed).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import numpy as np
 from lidarcal.geometry import Plane
 from lidarcal.io.dataset import BoardSpec
 from lidarcal.laserplane import laser_plane, read_camera_json
+from lidarcal.synthetic.laserphotos import LaserPhotoConfig, write_laser_photos
 from lidarcal.synthetic.semireal import KINDS, write_semireal_photos
 
 REAL = Path(__file__).resolve().parents[1] / "data" / "real_tapas"
@@ -26,7 +31,13 @@ def main(out: Path, kinds: list[str], verbose: bool = False) -> None:
     for kind in kinds or list(KINDS):
         folder = out / kind
         if not (folder / "truth.json").exists():
-            write_semireal_photos(REAL, folder, kind)
+            if kind.startswith("sim"):  # the rendered photos: simN, simjpegN (seed N)
+                seed = int(kind.lstrip("simjpeg"))
+                cfg = LaserPhotoConfig(jpeg_quality=90 if "jpeg" in kind else None)
+                write_laser_photos(folder, seed=seed, n_photos=16, cfg=cfg, miss=(14,),
+                                   overexposed=(15,))
+            else:
+                write_semireal_photos(REAL, folder, kind)
         t = json.loads((folder / "truth.json").read_text())
         n = np.asarray(t["laser_plane"]["normal"])
         d = t["laser_plane"]["d_mm"]

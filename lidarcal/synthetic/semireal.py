@@ -19,7 +19,8 @@ through what a real camera does to a bright red line. The equations:
      board's white (the surface's albedo), ``k_c`` the sensor's response to the
      laser's wavelength (red: R 1, G ~0.1, B ~0.05), then lens halo and PSF.
 (S5) sensor and camera: clip at full well, blooming (the excess spills into the
-     neighbours), Bayer RGGB mosaic and demosaicing (``cv2.cvtColor``), auto white
+     neighbours), Bayer RGGB mosaic and demosaicing (``cv2.cvtColor``; of the change the
+     laser makes: the photo carries its own camera's demosaicing already), auto white
      balance (gains >= 1: a clipped core stays white), sRGB encoding, 8 bits, JPEG
      with 4:2:0 chroma subsampling.
 
@@ -209,7 +210,7 @@ def _speckle(shape: tuple[int, int], look: StripeLook, rng: np.random.Generator)
 
 def _bayer(lin: np.ndarray) -> np.ndarray:
     """(S5) RGGB mosaic of a linear BGR image (clipped at 1) and OpenCV's edge-aware
-    demosaicing (the photo went through a camera's once already: bilinear doubles its fringes)."""
+    demosaicing."""
     q = np.clip(np.rint(lin * 65535.0), 0, 65535).astype(np.uint16)
     m = np.empty(q.shape[:2], np.uint16)
     m[0::2, 0::2] = q[0::2, 0::2, 2]
@@ -252,13 +253,14 @@ def render_semireal(view: RealView, camera: CameraModel, board: BoardSpec, laser
     E = look.peak * albedo * sheet * _speckle((H, W), look, rng)
     E = cv2.GaussianBlur(E, (0, 0), look.psf_sigma_px)
     E = (1 - look.halo) * E + look.halo * cv2.GaussianBlur(E, (0, 0), look.halo_sigma_px)
+    base = np.clip(look.exposure * lin, 0.0, 1.0)
     sig = look.exposure * lin + white * E[..., None] * np.array(look.response, np.float32)
     excess = np.maximum(sig - 1.0, 0.0)
     sig = sig + look.bloom * cv2.GaussianBlur(excess, (0, 0), look.bloom_sigma_px)
     sig = sig + look.read_noise * rng.standard_normal(sig.shape, dtype=np.float32)
     sig = np.clip(sig, 0.0, 1.0)
-    if look.bayer:
-        sig = _bayer(sig)
+    if look.bayer:  # the photo carries its camera's demosaicing: only the change made anew
+        sig = np.clip(base + _bayer(sig) - _bayer(base), 0.0, 1.0)
     gains = np.array(look.awb, np.float32)
     sig = sig * (gains / gains.min())
     return _linear_to_srgb8(sig), cam
