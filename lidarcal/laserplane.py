@@ -3,12 +3,16 @@
 The structured-light step: in each lights-on photo the chessboard gives the
 board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
 (section 1.3, :func:`lidarcal.stripe.stripe_centres` on the laser's colour
-response), their rays meet the board plane (eq. 5) and all the photos' 3D
+response averaged along the stripe, :func:`lidarcal.laser_colour.along_stripe`, kept
+off overexposed areas), their rays meet the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
 chessboard or stripe fails its checks, or whose stripe line lies off the
 common plane, are left out with a warning naming them; sigma comes from a
-bootstrap over the photos used.
+bootstrap over the photos used. Real photos: a JPEG tagged with an EXIF rotation is
+read in the camera's orientation (:func:`read_photo`), large photos are searched for the
+board reduced, a stray chessboard corner is replaced (:func:`board_view_robust`) and the
+board's fit is judged per focal length (:func:`max_board_rms_px`).
 
 Output (``lidarcal-laser-plane/1``): ``normal . X = d_mm`` in the camera frame
 (OpenCV's), ``d_mm >= 0``.

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from lidarcal.geometry import Plane
-from lidarcal.io.dataset import BoardSpec
+from lidarcal.io.dataset import BoardSpec, DatasetError
 from lidarcal.laserplane import laser_plane, read_camera_json
 from lidarcal.synthetic.laserphotos import LaserPhotoConfig, write_laser_photos
 from lidarcal.synthetic.semireal import KINDS, write_semireal_photos
@@ -43,8 +43,12 @@ def main(out: Path, kinds: list[str], verbose: bool = False) -> None:
         d = t["laser_plane"]["d_mm"]
         c0 = time.process_time()
         m0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        r = laser_plane(folder, BoardSpec(tuple(t["pattern"]), t["square_mm"]),
-                        read_camera_json(folder / "camera.json"))
+        try:
+            r = laser_plane(folder, BoardSpec(tuple(t["pattern"]), t["square_mm"]),
+                            read_camera_json(folder / "camera.json"))
+        except DatasetError as e:
+            print(f"{kind:9s} error: {e}", flush=True)
+            continue
         cpu = time.process_time() - c0
         ang = np.degrees(np.arccos(min(1.0, abs(r.plane.normal @ n))))
         # offset: the truth plane's distance at the used points' centroid

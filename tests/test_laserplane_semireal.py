@@ -26,8 +26,6 @@ from lidarcal.stripe import stripe_centres
 from lidarcal.synthetic.semireal import (
     KINDS,
     encode_photo,
-    read_real_views,
-    render_semireal,
     with_exif_orientation,
     write_semireal_photos,
 )
@@ -53,10 +51,11 @@ def _errors(folder: Path):
 
 @pytest.fixture(scope="module")
 def jpeg_photos(tmp_path_factory) -> Path:
-    """Four real views as JPEG (q 90, 4:2:0): on 00, 03 and 05 the square edges' colour
-    fringes outshine the stripe's excess on the white squares."""
-    out = tmp_path_factory.mktemp("semireal") / "jpeg"
-    return write_semireal_photos(TAPAS, out, "jpeg", seed=3, shots=1,
+    """Four real views as JPEG (q 90, 4:2:0), demosaiced once more (colour fringes at the
+    square edges twice the real photos'): on 00, 03 and 05 the fringes outshine the
+    stripe's colour excess on the white squares."""
+    out = tmp_path_factory.mktemp("semireal") / "fringes"
+    return write_semireal_photos(TAPAS, out, "fringes", seed=3, shots=1,
                                  names=("00.png", "01.png", "03.png", "05.png"))
 
 
@@ -89,7 +88,7 @@ def test_portrait_exif_photo_is_read_as_the_sensor_stored_it(tmp_path) -> None:
     assert got is None and problem == "image is 480x640, the camera's is 640x480"
     # a tag that turns the stored pixels back to the camera's size: OpenCV's reading kept
     path3 = tmp_path / "r.jpg"
-    ok, buf = cv2.imencode(".jpg", cv2.rotate(img, cv2.ROTATE_90_COUNTERCLOCKWISE))
+    _ok, buf = cv2.imencode(".jpg", cv2.rotate(img, cv2.ROTATE_90_COUNTERCLOCKWISE))
     path3.write_bytes(with_exif_orientation(buf.tobytes(), 6))
     got, problem = read_photo(path3, (640, 480))
     assert problem is None and np.abs(got.astype(int) - img).mean() < 3
@@ -126,7 +125,7 @@ def _stripe_with_fringes(angle_deg: float, rng) -> tuple[np.ndarray, np.ndarray]
 
 @pytest.mark.parametrize("angle", [27.0, 61.0, 118.0])
 def test_along_stripe_finds_the_stripe_among_edge_fringes(angle) -> None:
-    img, d = _stripe_with_fringes(angle, np.random.default_rng(int(angle)))
+    img, _d = _stripe_with_fringes(angle, np.random.default_rng(int(angle)))
     mask = np.zeros(img.shape, bool)
     mask[20:220, 20:300] = True
     a = np.radians(angle)

@@ -20,7 +20,8 @@ through what a real camera does to a bright red line. The equations:
      laser's wavelength (red: R 1, G ~0.1, B ~0.05), then lens halo and PSF.
 (S5) sensor and camera: clip at full well, blooming (the excess spills into the
      neighbours), Bayer RGGB mosaic and demosaicing (``cv2.cvtColor``; of the change the
-     laser makes: the photo carries its own camera's demosaicing already), auto white
+     laser makes: the photo carries its own camera's demosaicing already; ``remosaic``: of
+     the whole photo, its colour fringes doubled), auto white
      balance (gains >= 1: a clipped core stays white), sRGB encoding, 8 bits, JPEG
      with 4:2:0 chroma subsampling.
 
@@ -67,6 +68,9 @@ class StripeLook:
     exposure: float = 1.0                  # e: the scene's exposure (> 1: white squares clip)
     awb: tuple[float, float, float] = (1.06, 1.0, 1.0)     # B, G, R gains after demosaicing
     bayer: bool = True
+    remosaic: bool = False                 # the whole photo demosaiced again: its colour
+                                           # fringes at the square edges doubled (a camera
+                                           # with strong fringes or chromatic aberration)
     jpeg_quality: int | None = 90          # None: PNG
     read_noise: float = 0.002              # linear, x white
     board_margin_mm: float = 60.0          # physical board beyond the pattern's outer squares
@@ -132,7 +136,7 @@ def scaled_camera(camera: CameraModel, scale: float, pad: tuple[int, int] = (0, 
     S = np.array([[scale, 0, 0.5 * scale - 0.5 + pad[0]],
                   [0, scale, 0.5 * scale - 0.5 + pad[1]], [0, 0, 1.0]])
     w, h = camera.image_size
-    size = (int(round(w * scale)) + 2 * pad[0], int(round(h * scale)) + 2 * pad[1])
+    size = (round(w * scale) + 2 * pad[0], round(h * scale) + 2 * pad[1])
     return CameraModel(S @ K, np.asarray(camera.dist, float), size, source=camera.source)
 
 
@@ -170,7 +174,7 @@ def _sheet_image(camera: CameraModel, shape: tuple[int, int], R: np.ndarray, T: 
     """(S3) the sheet's profile ``exp(-delta^2 / 2 s^2)`` per pixel (H, W), averaged over
     sub-pixels; computed only in a band found on a coarse grid of pixels."""
     H, W = shape
-    step = max(1, int(round(max(H, W) / 400)))
+    step = max(1, round(max(H, W) / 400))
     gy, gx = np.mgrid[0:H + step:step, 0:W + step:step]
     grid = np.column_stack([gx.ravel(), gy.ravel()]).astype(float)
     dg = np.abs(_sheet_distance(camera, grid, R, T, board, laser, look)).reshape(gx.shape)
@@ -228,10 +232,10 @@ def render_semireal(view: RealView, camera: CameraModel, board: BoardSpec, laser
     cam = camera
     if look.upscale != 1.0:
         w, h = camera.image_size
-        img = cv2.resize(img, (int(round(w * look.upscale)), int(round(h * look.upscale))),
+        img = cv2.resize(img, (round(w * look.upscale), round(h * look.upscale)),
                          interpolation=cv2.INTER_CUBIC)
     if look.pad_frac > 0:
-        px, py = int(round(look.pad_frac * img.shape[1])), int(round(look.pad_frac * img.shape[0]))
+        px, py = round(look.pad_frac * img.shape[1]), round(look.pad_frac * img.shape[0])
         big = cv2.copyMakeBorder(img, py, py, px, px, cv2.BORDER_REPLICATE)
         soft = cv2.GaussianBlur(big, (0, 0), 0.02 * big.shape[1])
         inside = np.zeros(big.shape[:2], bool)
@@ -259,7 +263,9 @@ def render_semireal(view: RealView, camera: CameraModel, board: BoardSpec, laser
     sig = sig + look.bloom * cv2.GaussianBlur(excess, (0, 0), look.bloom_sigma_px)
     sig = sig + look.read_noise * rng.standard_normal(sig.shape, dtype=np.float32)
     sig = np.clip(sig, 0.0, 1.0)
-    if look.bayer:  # the photo carries its camera's demosaicing: only the change made anew
+    if look.bayer and look.remosaic:
+        sig = _bayer(sig)
+    elif look.bayer:  # the photo carries its camera's demosaicing: only the change made anew
         sig = np.clip(base + _bayer(sig) - _bayer(base), 0.0, 1.0)
     gains = np.array(look.awb, np.float32)
     sig = sig * (gains / gains.min())
@@ -303,6 +309,7 @@ def with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
 #: the kinds of semi-real photo sets of :func:`write_semireal_photos`
 KINDS = {
     "jpeg": StripeLook(),
+    "fringes": StripeLook(remosaic=True),
     "jpeg80": StripeLook(jpeg_quality=80, peak=15.0, sheet_sigma_mm=0.7),
     "bright": StripeLook(exposure=1.4, peak=15.0, jpeg_quality=85),
     "png": StripeLook(jpeg_quality=None, bayer=False, speckle=0.15),
