@@ -5,8 +5,8 @@ chessboard (``data/real_tapas``: real lighting, lens, hands, red labels, floor)
 with the stripe of a line laser drawn in on the board's true plane, then passed
 through what a real camera does to a bright red line. The equations:
 
-(S1) board pose ``X = R_b P + T_b`` by ``cv2.solvePnP`` of the real photo's corners
-     (eq. 1); its plane ``n_b . X = d_b`` (eq. 3) is the truth the stripe lies on.
+(S1) board pose ``X = R_b P + T_b`` by ``cv2.solvePnP`` of the real photo's corners,
+     stray corners replaced (eq. 1); its plane ``n_b . X = d_b`` (eq. 3) is the truth the stripe lies on.
 (S2) each pixel's ray ``X = t (x, y, 1)``, ``(x, y)`` the undistorted normalised
      pixel (eq. 5), meets the board (inside the board's physical outline: the pattern
      plus ``board_margin_mm``) or, beyond it, a wall ``Z = z_wall``:
@@ -93,8 +93,10 @@ class RealView:
 
 def read_real_views(folder: str | Path) -> tuple[CameraModel, BoardSpec, list[RealView]]:
     """The camera, board and photos of a real recording (``camera.json``, ``board.json``,
-    ``NN.png``) with each photo's board pose by solvePnP of its corners (S1)."""
-    from ..laserplane import read_camera_json
+    ``NN.png``) with each photo's board pose by solvePnP of its corners (S1), a stray
+    corner replaced (:func:`lidarcal.laserplane.board_view_robust`: the TAPAS views 02 and
+    06 have outer corners 3-5 px off, dragged by the fiducial rings)."""
+    from ..laserplane import board_view_robust, read_camera_json
 
     folder = Path(folder)
     camera = read_camera_json(folder / "camera.json")
@@ -106,7 +108,7 @@ def read_real_views(folder: str | Path) -> tuple[CameraModel, BoardSpec, list[Re
         corners = detect_chessboard(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), board.pattern_size)
         if corners is None:
             continue
-        v = board_view(camera, corners, board)
+        v, _ = board_view_robust(camera, corners, board)
         views.append(RealView(p.name, img, v.R_pnp, np.ravel(v.T_pnp),
                               float(v.reprojection_rms_px[1])))
     return camera, board, views
