@@ -107,13 +107,14 @@ def laser_response(image: np.ndarray, colour: str = "auto",
 CORE_MAX_PX = 15
 
 
-def clipped_areas(image: np.ndarray, colour: str) -> np.ndarray:
-    """Where the laser's channel clips over an area wider than a stripe's core (bool, H x W):
-    overexposed white squares, lamps. The laser cannot be seen there (its channel is full
+def clipped_areas(image: np.ndarray, colour: str, core_max_px: int = CORE_MAX_PX
+                  ) -> np.ndarray:
+    """Where the laser's channel clips over an area wider than a stripe's core (bool, H x W;
+    ``core_max_px`` every way): overexposed white squares, lamps. The laser cannot be seen there (its channel is full
     already): the core fill of :func:`laser_response` leaves them out and the stripe search
     of :mod:`lidarcal.laserplane` keeps its profiles off them."""
     sat = (np.asarray(image)[..., _CHANNEL[colour]] >= SATURATED_DN).view(np.uint8)
-    se = cv2.getStructuringElement(cv2.MORPH_RECT, (CORE_MAX_PX, CORE_MAX_PX))
+    se = cv2.getStructuringElement(cv2.MORPH_RECT, (int(core_max_px), int(core_max_px)))
     return cv2.morphologyEx(sat, cv2.MORPH_OPEN, se).view(bool)
 
 

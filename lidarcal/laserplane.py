@@ -32,6 +32,7 @@ from .camera import backproject_to_plane, detect_chessboard, project_points
 from .geometry import Plane, fit_plane
 from .io.dataset import BoardSpec, CameraModel, DatasetError, parse_camera, write_json_atomic
 from .laser_colour import (
+    CORE_MAX_PX,
     SATURATED_DN,
     along_stripe,
     clipped_areas,
@@ -199,6 +200,26 @@ def board_view_robust(camera: CameraModel, corners_px: np.ndarray, board: BoardS
     return view, int(out.sum())
 
 
+#: coloured things thicker than this share of a square's side are not a stripe
+WIDE_OBJECT_SQUARES = 0.25
+
+
+def wide_objects(response: np.ndarray, mask: np.ndarray, side_px: float) -> np.ndarray:
+    """Where the laser's colour covers something thicker than ``WIDE_OBJECT_SQUARES`` of a
+    square (uint8 0/1): red labels and dots beside the board, not a stripe (thin).
+
+    The response above half its 99.9th percentile inside ``mask`` is opened by a square of
+    that size (what survives is thick) and grown by the same size, for its blurred rim."""
+    vals = response[mask.astype(bool)]
+    if vals.size == 0:
+        return np.zeros(response.shape, np.uint8)
+    thr = max(float(np.percentile(vals, 99.9)) / 2, 1.0)
+    hot = (response > thr).astype(np.uint8)
+    k = 2 * int(side_px * WIDE_OBJECT_SQUARES / 2) + 1
+    se = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    return cv2.dilate(cv2.morphologyEx(hot, cv2.MORPH_OPEN, se), se)
+
+
 def max_board_rms_px(camera: CameraModel) -> float:
     """The largest corner reprojection rms (px) of a usable board: ``MAX_BOARD_RMS_PX`` per
     1000 px of focal length, at least ``MAX_BOARD_RMS_PX`` (an angle, ~1 mrad: the same
@@ -276,9 +297,13 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         side, edges = square_side_and_edges(view.corners_px, found_spec)
         # profiles off overexposed squares: the laser is not seen there, and a profile that
         # reaches one is cut on that side
+        # (a core is narrower than a quarter of a square: on large photos wider than 15 px)
+        core = max(CORE_MAX_PX, 2 * int(side * WIDE_OBJECT_SQUARES / 2) + 1)
         k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
-        clipped = cv2.dilate(clipped_areas(img, colour).view(np.uint8), np.ones((k, k), np.uint8))
+        clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
+                             np.ones((k, k), np.uint8))
         mask &= 1 - clipped
+        mask &= 1 - wide_objects(response, mask, side)
         response, _ = along_stripe(response, mask.astype(bool), side, edges,
                                    smooth_px=side)
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
