@@ -158,3 +158,26 @@ def test_clipped_white_square_is_not_filled_from_the_stripe() -> None:
     resp = laser_response(img, "red")
     assert resp[:, 55].min() >= resp[:, 50:54].max() > 50  # the core: a flat top
     assert resp[:, 58:].max() == 0                          # the clipped square: nothing
+
+
+def test_thick_red_things_are_not_searched_for_the_stripe() -> None:
+    """A red dot of half a square beside a thin stripe (a label's dot inside the board's
+    outline): the dot is left out of the search, the stripe and its surroundings are not."""
+    from lidarcal.laserplane import wide_objects
+
+    side = 60.0
+    resp = np.zeros((200, 300), np.uint8)
+    cv2.circle(resp, (220, 100), 15, 120, -1)     # the dot: 30 px across
+    resp[:, 98:103] = 100                         # the stripe: 5 px wide
+    mask = np.ones(resp.shape, bool)
+    wide = wide_objects(resp, mask, side).astype(bool)
+    assert wide[100, 220] and wide[100, 206] and not wide[:, 90:111].any()
+
+
+def test_a_wide_clipped_core_of_a_large_photo_is_a_core() -> None:
+    """A stripe core clipped over 25 px (a 12 MP photo): a clipped area at the VGA size
+    limit (15 px), a core when the limit is a quarter of its 160 px squares."""
+    img = np.full((100, 200, 3), 30, np.uint8)
+    img[:, 80:105] = 255
+    assert clipped_areas(img, "red")[:, 80:105].all()
+    assert not clipped_areas(img, "red", core_max_px=41).any()
