@@ -87,8 +87,12 @@ def laser_response(image: np.ndarray, colour: str = "auto",
         sat = img[..., _CHANNEL[colour]] >= SATURATED_DN
         if sat.any():
             r = 7  # fills cores up to ~15 px wide; far from a stripe saturated squares stay 0
-            filled = cv2.dilate(resp, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1,) * 2))
-            resp = np.where(sat, np.maximum(resp, filled), resp)
+            se = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1,) * 2)
+            filled = cv2.dilate(resp, se)
+            # a clipped white square (wider than a core every way) is not filled: the laser
+            # cannot be seen there, and the fill would copy the stripe on the next black
+            # square into it, on one side only
+            resp = np.where(sat & ~clipped_areas(img, colour), np.maximum(resp, filled), resp)
         ref = None
         if reference is not None and np.ndim(reference) == 3:
             ref = np.clip(_colour_excess(np.asarray(reference), colour), 0, 255)
@@ -97,3 +101,86 @@ def laser_response(image: np.ndarray, colour: str = "auto",
         if lit:
             resp = resp - ref
     return np.clip(np.rint(resp), 0, 255).astype(np.uint8)
+
+
+#: a clipped area of the laser's channel wider than this (px, every way) is not a stripe's core
+CORE_MAX_PX = 15
+
+
+def clipped_areas(image: np.ndarray, colour: str, core_max_px: int = CORE_MAX_PX
+                  ) -> np.ndarray:
+    """Where the laser's channel clips over an area wider than a stripe's core (bool, H x W;
+    ``core_max_px`` every way): overexposed white squares, lamps. The laser cannot be seen there (its channel is full
+    already): the core fill of :func:`laser_response` leaves them out and the stripe search
+    of :mod:`lidarcal.laserplane` keeps its profiles off them."""
+    sat = (np.asarray(image)[..., _CHANNEL[colour]] >= SATURATED_DN).view(np.uint8)
+    se = cv2.getStructuringElement(cv2.MORPH_RECT, (int(core_max_px), int(core_max_px)))
+    return cv2.morphologyEx(sat, cv2.MORPH_OPEN, se).view(bool)
+
+
+def _line_kernel(angle: float, length_px: float) -> np.ndarray:
+    """A normalised line of ``length_px`` at ``angle`` (rad, image x towards y), odd square."""
+    n = int(2 * np.ceil(length_px / 2) + 1)
+    k = np.zeros((n, n), np.float32)
+    t = np.linspace(-length_px / 2, length_px / 2, 4 * n)
+    c = n // 2
+    k[np.round(c + t * np.sin(angle)).astype(int), np.round(c + t * np.cos(angle)).astype(int)] = 1
+    return k / k.sum()
+
+
+#: directions (deg) searched for the stripe by :func:`along_stripe`, and a board edge
+#: direction's neighbourhood left out of the search (its colour fringes lie along it)
+ALONG_STEP_DEG = 3.0
+EDGE_GUARD_DEG = 6.0
+#: the direction search runs on the mask's box reduced to at most this many px
+ALONG_SEARCH_PX = 800
+
+
+def along_stripe(response: np.ndarray, mask: np.ndarray, length_px: float,
+                 avoid_deg: tuple[float, ...] = (), smooth_px: float | None = None
+                 ) -> tuple[np.ndarray, float]:
+    """The response averaged along the stripe's direction, and that direction (deg).
+
+    A line laser on a flat board is a straight line in the image (a curve under lens
+    distortion, straight over a short length); the colour fringes that demosaicing, JPEG's
+    4:2:0 chroma and lens colour put along the board's square edges, and JPEG's chroma
+    block noise, are not. The direction is the one (``ALONG_STEP_DEG`` steps, refined to
+    a tenth, away from the ``avoid_deg`` directions by ``EDGE_GUARD_DEG``) whose average
+    over a line of ``length_px`` has the highest 99.9th percentile inside ``mask``
+    (searched on the mask's box reduced to ``ALONG_SEARCH_PX``); the response is then
+    averaged over a line of ``smooth_px`` (default ``length_px``) in that direction
+    (symmetric: a straight stripe's centre does not move) at full resolution within the
+    mask's box (zero outside). A directional matched filter, as
+    line detectors by oriented filters (Freeman & Adelson 1991, steerable filters).
+    """
+    ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    out = np.zeros(response.shape, np.uint8)
+    if ys.size == 0:
+        return out, float("nan")
+    pad = int(np.ceil(length_px / 2)) + 2
+    y0, y1 = max(ys[0] - pad, 0), min(ys[-1] + 1 + pad, response.shape[0])
+    x0, x1 = max(xs[0] - pad, 0), min(xs[-1] + 1 + pad, response.shape[1])
+    crop = response[y0:y1, x0:x1].astype(np.float32)
+    s = min(1.0, ALONG_SEARCH_PX / max(crop.shape))
+    small = cv2.resize(crop, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else crop
+    msmall = cv2.resize(mask[y0:y1, x0:x1].astype(np.uint8), (small.shape[1], small.shape[0]),
+                        interpolation=cv2.INTER_NEAREST).astype(bool)
+    if not msmall.any():
+        return out, float("nan")
+
+    def score(deg: float) -> float:
+        f = cv2.filter2D(small, -1, _line_kernel(np.radians(deg), max(3.0, s * length_px)))
+        return float(np.percentile(f[msmall], 99.9))
+
+    def allowed(deg: float) -> bool:
+        return all(abs((deg - a + 90) % 180 - 90) > EDGE_GUARD_DEG for a in avoid_deg)
+
+    cands = [a for a in np.arange(0, 180, ALONG_STEP_DEG) if allowed(a)] or \
+        list(np.arange(0, 180, ALONG_STEP_DEG))
+    best = max(cands, key=score)
+    fine = [best + d for d in np.arange(-ALONG_STEP_DEG / 2, ALONG_STEP_DEG / 2 + 1e-9,
+                                        ALONG_STEP_DEG / 10)]
+    best = float(max(fine, key=score)) % 180
+    f = cv2.filter2D(crop, -1, _line_kernel(np.radians(best), smooth_px or length_px))
+    out[y0:y1, x0:x1] = np.clip(np.rint(f), 0, 255).astype(np.uint8)
+    return out, best

@@ -3,12 +3,16 @@
 The structured-light step: in each lights-on photo the chessboard gives the
 board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
 (section 1.3, :func:`lidarcal.stripe.stripe_centres` on the laser's colour
-response), their rays meet the board plane (eq. 5) and all the photos' 3D
+response averaged along the stripe, :func:`lidarcal.laser_colour.along_stripe`, kept
+off overexposed areas), their rays meet the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
 chessboard or stripe fails its checks, or whose stripe line lies off the
 common plane, are left out with a warning naming them; sigma comes from a
-bootstrap over the photos used.
+bootstrap over the photos used. Real photos: a JPEG tagged with an EXIF rotation is
+read in the camera's orientation (:func:`read_photo`), large photos are searched for the
+board reduced, a stray chessboard corner is replaced (:func:`board_view_robust`) and the
+board's fit is judged per focal length (:func:`max_board_rms_px`).
 
 Output (``lidarcal-laser-plane/1``): ``normal . X = d_mm`` in the camera frame
 (OpenCV's), ``d_mm >= 0``.
@@ -22,8 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .board import board_view
-from .camera import backproject_to_plane, detect_chessboard
+from .board import BoardView, board_view, pose_pnp
+from .camera import backproject_to_plane, detect_chessboard, project_points
 from .geometry import Plane, fit_plane
 from .io.dataset import (
     BoardSpec,
@@ -34,7 +38,14 @@ from .io.dataset import (
     read_json_object,
     write_json_atomic,
 )
-from .laser_colour import SATURATED_DN, detect_laser_colour, laser_response
+from .laser_colour import (
+    CORE_MAX_PX,
+    SATURATED_DN,
+    along_stripe,
+    clipped_areas,
+    detect_laser_colour,
+    laser_response,
+)
 from .stripe import stripe_centres
 from .stripe_quality import quality_problem
 
@@ -48,6 +59,10 @@ MIN_OUTLIER_MM = 0.3
 MIN_PHOTOS = 2
 #: a board whose corners fit its pose worse than this (rms, px) is not used
 MAX_BOARD_RMS_PX = 1.0
+#: stripe profiles keep this share of a square's side away from overexposed areas
+CLIPPED_GUARD_SQUARES = 0.125
+#: the board is searched in photos larger than this (px, longer side) reduced to it first
+BOARD_SEARCH_PX = 1600
 #: below this ratio of the 2nd to the 1st singular value of the points the stripes are
 #: (nearly) parallel and the plane is not determined
 MIN_SPREAD = 0.02
@@ -134,55 +149,165 @@ def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
     The detector and the corner refinement see the photo without the laser
     (:func:`board_gray` with ``paint``; it breaks the detector and pulls corners); the
     pattern is tried as given and swapped (8x5 = 5x8), the detector's exhaustive mode
-    last. Returns the corners and the board spec they match.
+    last; a photo larger than ``BOARD_SEARCH_PX`` is searched reduced to it first (the
+    corners refined at full size). Returns the corners and the board spec they match.
     """
     clean = board_gray(image, colour, response, paint)
+    down = min(1.0, BOARD_SEARCH_PX / max(clean.shape[:2]))  # large photos: searched reduced
     c, r = board.inner_corners
     specs = (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,)
     for exhaustive in (False, True):
         for spec in specs:
-            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive)
+            corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive,
+                                        downscale=down)
             if corners is not None:
                 return corners, spec
     return None
+
+
+#: a corner whose reprojection residual exceeds this many times the median of the others
+#: (and the board limit) is a stray corner (:func:`board_view_robust`)
+STRAY_CORNER_K = 5.0
+
+
+def board_view_robust(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec
+                      ) -> tuple[BoardView, int]:
+    """:func:`lidarcal.board.board_view` with stray corners replaced: (view, how many).
+
+    Robust PnP by leaving the worst corner out: while the corner furthest from the pose's
+    reprojection lies ``STRAY_CORNER_K`` times the median residual and the board limit
+    (:func:`max_board_rms_px`) away, the pose is solved without it (``cv2.solvePnP``) and
+    the corner replaced by its projection; at most a tenth of the corners (at least one).
+    The chessboard detector can put an outer corner on a fiducial ring beside the board
+    (seen on the real TAPAS views enlarged to 2000 x 1500: 30 px off, the rest ~1 px).
+    """
+    c = np.asarray(corners_px, float).copy()
+    obj = board.object_points()
+    view = board_view(camera, c, board)
+    out = np.zeros(len(c), bool)
+    for _ in range(max(1, len(c) // 10)):
+        res = np.linalg.norm(project_points(camera, obj @ view.R_pnp.T + view.T_pnp) - c, axis=1)
+        res[out] = 0.0
+        k = int(np.argmax(res))
+        if res[k] <= max(STRAY_CORNER_K * float(np.median(res[~out])), max_board_rms_px(camera)):
+            break
+        keep = np.ones(len(c), bool)
+        keep[k] = False
+        keep &= ~out
+        R, T = pose_pnp(camera, c[keep], obj[keep], view.R_pnp, view.T_pnp)
+        c[k] = project_points(camera, obj[k:k + 1] @ R.T + T)[0]
+        out[k] = True
+        view = board_view(camera, c, board)
+    return view, int(out.sum())
+
+
+#: coloured things thicker than this share of a square's side are not a stripe
+WIDE_OBJECT_SQUARES = 0.25
+
+
+def wide_objects(response: np.ndarray, mask: np.ndarray, side_px: float) -> np.ndarray:
+    """Where the laser's colour covers something thicker than ``WIDE_OBJECT_SQUARES`` of a
+    square (uint8 0/1): red labels and dots beside the board, not a stripe (thin).
+
+    The response above half its 99.9th percentile inside ``mask`` is opened by a square of
+    that size (what survives is thick) and grown by the same size, for its blurred rim."""
+    vals = response[mask.astype(bool)]
+    if vals.size == 0:
+        return np.zeros(response.shape, np.uint8)
+    thr = max(float(np.percentile(vals, 99.9)) / 2, 1.0)
+    hot = (response > thr).astype(np.uint8)
+    k = 2 * int(side_px * WIDE_OBJECT_SQUARES / 2) + 1
+    se = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    return cv2.dilate(cv2.morphologyEx(hot, cv2.MORPH_OPEN, se), se)
+
+
+def max_board_rms_px(camera: CameraModel) -> float:
+    """The largest corner reprojection rms (px) of a usable board: ``MAX_BOARD_RMS_PX`` per
+    1000 px of focal length, at least ``MAX_BOARD_RMS_PX`` (an angle, ~1 mrad: the same
+    board misfit in a 12 MP photo spans six times the pixels of a VGA one)."""
+    return MAX_BOARD_RMS_PX * max(1.0, float(camera.K[0][0]) / 1000.0)
+
+
+def read_photo(path: Path, image_size: tuple[int, int]) -> tuple[np.ndarray | None, str | None]:
+    """The photo (BGR) in the camera's orientation, or its problem.
+
+    OpenCV turns a JPEG by its EXIF orientation tag; a phone held upright stores the
+    sensor's (landscape) pixels and tags them "rotate 90": turned, the photo no longer
+    has the camera's size. The photo is read turned (as ``lidarcal intrinsics`` reads
+    its photos) and, when that does not fit the camera but the sensor's own orientation
+    (``cv2.IMREAD_IGNORE_ORIENTATION``) does, as stored.
+    """
+    try:
+        img = decode_image(path, cv2.IMREAD_COLOR)
+    except DatasetError as e:
+        return None, e.problem.split("; ")[0]
+    size = tuple(int(v) for v in image_size)
+    if (img.shape[1], img.shape[0]) != size:
+        raw = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if raw is not None and (raw.shape[1], raw.shape[0]) == size:
+            return raw, None
+        return None, (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
+                      f"{size[0]}x{size[1]}")
+    return img, None
+
+
+def square_side_and_edges(corners_px: np.ndarray, board: BoardSpec
+                          ) -> tuple[float, tuple[float, float]]:
+    """A square's side (px, median of neighbouring corners' distances) and the image
+    directions (deg, 0-180) of the board's rows and columns of corners."""
+    c, r = board.inner_corners
+    g = np.asarray(corners_px, float).reshape(r, c, 2)
+    dx, dy = np.diff(g, axis=1).reshape(-1, 2), np.diff(g, axis=0).reshape(-1, 2)
+    side = float(np.median(np.hypot(*np.vstack([dx, dy]).T)))
+    ang = tuple(float(np.degrees(np.arctan2(v[1], v[0])) % 180)
+                for v in (dx.mean(0), dy.mean(0)))
+    return side, ang
 
 
 def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
                   laser_colour: str = "auto") -> PhotoResult:
     """Stripe centres and 3D stripe points (eq. 5) of one photo, or its problem."""
     res = PhotoResult(path.name)
-    try:
-        img = decode_image(path, cv2.IMREAD_COLOR)
-    except DatasetError as e:
-        res.problem = e.problem.split("; ")[0]
-        return res
-    if (img.shape[1], img.shape[0]) != tuple(camera.image_size):
-        res.problem = (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
-                       f"{camera.image_size[0]}x{camera.image_size[1]}")
+    img, problem = read_photo(path, camera.image_size)
+    if problem:
+        res.problem = problem
         return res
     colour = detect_laser_colour(img) if laser_colour == "auto" else laser_colour
     response = laser_response(img, colour)
     # only the laser's clipped core painted out first (corners under the stripe keep their
     # own pixels), then the whole visible laser: the board pose that fits its corners best
-    view = None
+    view, found_spec = None, board
     for paint in ("core", "laser"):
         found = find_board(img, board, response, colour, paint)
         if found is not None:
-            v = board_view(camera, found[0], found[1])
+            v, _ = board_view_robust(camera, found[0], found[1])
             if view is None or v.reprojection_rms_px[1] < view.reprojection_rms_px[1]:
-                view = v
-            if view.reprojection_rms_px[1] <= MAX_BOARD_RMS_PX / 2:
+                view, found_spec = v, found[1]
+            if view.reprojection_rms_px[1] <= max_board_rms_px(camera) / 2:
                 break
     if view is None:
         res.problem = (f"the {board.inner_corners[0]}x{board.inner_corners[1]} chessboard "
                        "was not found")
         return res
-    if view.reprojection_rms_px[1] > MAX_BOARD_RMS_PX:
+    if view.reprojection_rms_px[1] > max_board_rms_px(camera):
         res.problem = (f"the chessboard corners do not fit one board pose (reprojection "
                        f"{view.reprojection_rms_px[1]:.2f} px)")
         return res
     mask = np.zeros(img.shape[:2], np.uint8)
     cv2.fillPoly(mask, [np.round(view.outline_px).astype(np.int32)], 1)
+    if colour in ("red", "green", "blue"):
+        side, edges = square_side_and_edges(view.corners_px, found_spec)
+        # profiles off overexposed squares: the laser is not seen there, and a profile that
+        # reaches one is cut on that side
+        # (a core is narrower than a quarter of a square: on large photos wider than 15 px)
+        core = max(CORE_MAX_PX, 2 * int(side * WIDE_OBJECT_SQUARES / 2) + 1)
+        k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
+        clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
+                             np.ones((k, k), np.uint8))
+        mask &= 1 - clipped
+        mask &= 1 - wide_objects(response, mask, side)
+        response, _ = along_stripe(response, mask.astype(bool), side, edges,
+                                   smooth_px=side)
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
         float(info["fit_rms_px"])
