@@ -18,14 +18,9 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from .camera import (
-    detect_chessboard,
-    project_points,
-    saddle_corners,
-    sb_accuracy_corners,
-    undistort_pixels,
-)
+from .camera import project_points, undistort_pixels
 from .corner_symmetry import symmetric_corners
+from .corners import detect_chessboard, saddle_corners, sb_accuracy_corners
 from .geometry import MAD_TO_SIGMA, Plane, as_points, nearest_rotation
 from .io.dataset import BoardSpec, CameraModel, Dataset, DatasetError, read_image
 
@@ -406,9 +401,9 @@ def find_v_boards(image: np.ndarray, board: BoardSpec,
 
 def sharpest_corners(gray: np.ndarray, corners: np.ndarray, board: BoardSpec,
                      camera: CameraModel) -> np.ndarray:
-    """Of :func:`lidarcal.camera.detect_chessboard`'s corners (``cv2.cornerSubPix``), the
-    saddle points of the smoothed image (:func:`lidarcal.camera.saddle_corners`) and OpenCV's
-    SB detector in its accuracy mode (:func:`lidarcal.camera.sb_accuracy_corners`), the set
+    """Of :func:`lidarcal.corners.detect_chessboard`'s corners (``cv2.cornerSubPix``), the
+    saddle points of the smoothed image (:func:`lidarcal.corners.saddle_corners`) and OpenCV's
+    SB detector in its accuracy mode (:func:`lidarcal.corners.sb_accuracy_corners`), the set
     the board's pose fits best: the smaller ``cv2.solvePnP`` reprojection RMS with the camera
     (the same board and camera for all, so the RMS compares the corners' noise). SB's search
     (~0.25 s per board) is only run when the saddles do not beat the detector's corners.

@@ -27,7 +27,8 @@ import cv2
 import numpy as np
 
 from .board import BoardView, board_view, pose_pnp
-from .camera import backproject_to_plane, detect_chessboard, project_points
+from .camera import backproject_to_plane, project_points
+from .corners import detect_chessboard
 from .geometry import Plane, fit_plane
 from .io.dataset import (
     BoardSpec,

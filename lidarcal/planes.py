@@ -92,13 +92,13 @@ class BoardPlane:
 
 def find_board(image: np.ndarray, board: BoardSpec) -> list[tuple[np.ndarray, BoardSpec]]:
     """Chessboard corner sets (N, 2) with the pattern either way round (8x5 = 5x8): the
-    package's finder (:func:`lidarcal.camera.detect_chessboard`) and OpenCV's
+    package's finder (:func:`lidarcal.corners.detect_chessboard`) and OpenCV's
     ``findChessboardCornersSB`` in its accuracy mode (``CALIB_CB_ACCURACY``, no
     ``cornerSubPix``). On the real TAPAS photos, whose boards carry fiducial rings beside
     the pattern, the latter fits the board model with 0.17-0.50 px against 0.6-2.2 px;
     :func:`prepare_views` keeps, per view, the set that fits better. Empty if neither
     finds the board."""
-    from .camera import _gray, detect_chessboard
+    from .corners import _gray, detect_chessboard
 
     gray = _gray(image)
     c, r = board.inner_corners

@@ -5,7 +5,7 @@ Three tables, each against truth (the true camera and the true board poses of tr
 1. corners: detected chessboard corners against the true projections, on board.png (both
    boards of the V) and on the intrinsics photos: RMS (px) and bias (mean dx, dy, px) of the
    corners ``calibrate`` uses ("lidarcal final": ``find_v_boards`` with the true camera,
-   ``calibrate_intrinsics``), of lidarcal's detector (and the saddle points of :func:`lidarcal.camera.saddle_corners`
+   ``calibrate_intrinsics``), of lidarcal's detector (and the saddle points of :func:`lidarcal.corners.saddle_corners`
    from its corners, the V boards' sub-pixel candidate) beside plain OpenCV
    (``findChessboardCorners`` + ``cornerSubPix`` with fixed windows;
    ``findChessboardCornersSB`` with and without ``CALIB_CB_ACCURACY``);
@@ -31,12 +31,8 @@ import numpy as np
 import pandas as pd
 
 from lidarcal.board import find_v_boards, plane_from_pose, pose_from_homography, pose_pnp
-from lidarcal.camera import (
-    calibrate_intrinsics,
-    detect_chessboard,
-    project_points,
-    saddle_corners,
-)
+from lidarcal.camera import calibrate_intrinsics, project_points
+from lidarcal.corners import detect_chessboard, saddle_corners
 from lidarcal.evaluate import (
     plane_error,
     ray_direction_error_deg,

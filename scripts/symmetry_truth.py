@@ -25,7 +25,8 @@ import pandas as pd
 import lidarcal.board as board_mod
 import lidarcal.camera as camera_mod
 from lidarcal.board import find_v_boards, plane_from_pose, pose_pnp, symmetric_refinement
-from lidarcal.camera import _gray, project_points
+from lidarcal.camera import project_points
+from lidarcal.corners import _gray
 from lidarcal.evaluate import plane_error, truth_board_planes, truth_camera
 from lidarcal.io.dataset import load_dataset, read_image
 from lidarcal.pipeline import camera_for

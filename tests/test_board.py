@@ -238,7 +238,7 @@ def test_saddle_corners_against_truth(opening: float, yaw: float, noise: float) 
     80-90 deg V too): nearer the truth than the detector's cornerSubPix corners and OpenCV's
     SB accuracy mode, and within a noise-scaled bound (measured 0.009 px at 1.5 DN, 0.017 px at
     3 DN: the fit averages about a square's worth of pixels)."""
-    from lidarcal.camera import detect_chessboard, saddle_corners, sb_accuracy_corners
+    from lidarcal.corners import detect_chessboard, saddle_corners, sb_accuracy_corners
 
     poses = v_board_poses(opening_deg=opening, yaw_deg=yaw)
     img = render_boards(CAM, poses, BOARD, noise=noise)
@@ -259,7 +259,7 @@ def test_saddle_corners_keeps_dragged_corners_and_refuses_blank(v_image) -> None
     """A dark blob in the white square beside one corner (a fiducial ring, a marker) spoils
     that corner's smoothed saddle (no saddle, off the grid or dragged): the corner keeps the
     given position, the corners far from it their saddles; no corners in the image: None."""
-    from lidarcal.camera import detect_chessboard, local_square_px, saddle_corners
+    from lidarcal.corners import detect_chessboard, local_square_px, saddle_corners
 
     img, _ = v_image
     det = detect_chessboard(img, BOARD.pattern_size)
@@ -286,7 +286,7 @@ def test_sharpest_corners_against_truth(v_image, monkeypatch) -> None:
     within 0.05 px."""
     from lidarcal import board as board_module
     from lidarcal.board import sharpest_corners
-    from lidarcal.camera import detect_chessboard, saddle_corners, sb_accuracy_corners
+    from lidarcal.corners import detect_chessboard, saddle_corners, sb_accuracy_corners
 
     img, poses = v_image
     det = detect_chessboard(img, BOARD.pattern_size)
@@ -319,7 +319,7 @@ def test_sharpest_corners_on_the_real_tapas_views() -> None:
     import cv2
 
     from lidarcal.board import board_view, sharpest_corners
-    from lidarcal.camera import detect_chessboard
+    from lidarcal.corners import detect_chessboard
     from lidarcal.io.dataset import parse_camera
 
     tapas = Path(__file__).resolve().parents[1] / "data" / "real_tapas"
@@ -345,7 +345,7 @@ def test_bilinear_patches_match_scipy() -> None:
     centres near the border included."""
     from scipy.ndimage import map_coordinates
 
-    from lidarcal.camera import _bilinear_patches
+    from lidarcal.corners import _bilinear_patches
 
     rng = np.random.default_rng(0)
     img = rng.uniform(0, 255, (120, 160)).astype(np.float32)
@@ -377,7 +377,7 @@ def test_bilinear_patches_equal_the_four_corner_formula(at_edges: bool) -> None:
     """Patches cut from the strided windows (all inside the image) or indexed pixel by pixel
     (some beyond its edges, which repeat), interpolated along x on every row once and then
     along y: the four-corner bilinear formula's numbers exactly (the same products and sums)."""
-    from lidarcal.camera import _bilinear_patches
+    from lidarcal.corners import _bilinear_patches
 
     rng = np.random.default_rng(1)
     img = cv2.GaussianBlur(rng.uniform(0, 255, (100, 140)).astype(np.float32), (0, 0), 1.5)

@@ -14,11 +14,11 @@ from hypothesis import strategies as st
 from lidarcal.camera import (
     backproject_to_plane,
     calibrate_intrinsics,
-    detect_chessboard,
     pixel_rays,
     project_points,
     undistort_pixels,
 )
+from lidarcal.corners import detect_chessboard
 from lidarcal.geometry import Plane
 from lidarcal.io.dataset import BoardSpec, CameraModel, DatasetError
 

@@ -12,8 +12,9 @@ from scipy.spatial.transform import Rotation
 from test_board import BOARD, CAM, render_boards, v_board_poses
 
 from lidarcal.board import pose_pnp, symmetric_refinement
-from lidarcal.camera import calibrate_intrinsics, detect_chessboard, project_points
+from lidarcal.camera import calibrate_intrinsics, project_points
 from lidarcal.corner_symmetry import edge_strips, symmetric_corners
+from lidarcal.corners import detect_chessboard
 from lidarcal.evaluate import truth_camera
 from lidarcal.io.dataset import load_dataset
 

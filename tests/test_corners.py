@@ -10,15 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from lidarcal.camera import (
+from lidarcal.camera import calibrate_intrinsics, heldout_rms_px, view_reprojection_sq
+from lidarcal.corners import (
     _subpix,
-    calibrate_intrinsics,
     corner_outliers,
     detect_chessboard,
     grid_prediction_scaled,
-    heldout_rms_px,
     local_square_px,
-    view_reprojection_sq,
 )
 from lidarcal.io.dataset import BoardSpec, CameraModel
 

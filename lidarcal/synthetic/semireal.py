@@ -43,7 +43,8 @@ import cv2
 import numpy as np
 
 from ..board import board_view
-from ..camera import detect_chessboard, undistort_pixels
+from ..camera import undistort_pixels
+from ..corners import detect_chessboard
 from ..geometry import Plane, unit
 from ..io.dataset import BoardSpec, CameraModel, write_json_atomic
 
