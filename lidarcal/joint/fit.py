@@ -190,7 +190,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             again = fit_joint_data(data, starts, fit_planes=fit_planes, loss=loss,
                                    psi_ref_deg=psi_ref_deg, f_scale=f_scale, solver=solver,
                                    correlated=correlated, corner_floor_px=corner_floor_px,
-                                   jitter=jitter, ranging=False, plane_prior=plane_prior)
+                                   jitter=jitter, ranging=False, plane_prior=plane_prior,
+                                   board_cov=board_cov)
             return replace(again, warnings=tuple(_conflict_warnings(rv[:n_rng], conflict, prior))
                            + again.warnings)
         held = tuple(int(j) for j in np.flatnonzero(z <= RANGING_SIGNIFICANCE))
@@ -276,7 +277,8 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
         white = fit_joint_data(data, starts, fit_planes=fit_planes, loss=loss,
                                psi_ref_deg=psi_ref_deg, f_scale=f_scale, solver=solver,
                                correlated=False, corner_floor_px=corner_floor_px, jitter=jitter,
-                               ranging=True, ranging_prior=prior, plane_prior=plane_prior)
+                               ranging=True, ranging_prior=prior, plane_prior=plane_prior,
+                               board_cov=board_cov)
         disagree = _offset_disagreement(rmodel, white.ranging)
         if disagree > RANGING_SIGNIFICANCE:
             msg = (f"the range offset is {rmodel.offset_mm:.4g} +- {rmodel.offset_sigma_mm:.2g} mm "
