@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -57,3 +58,23 @@ def bundled_dataset(dst: Path, n: int | None = None, copy: tuple[str, ...] = (),
         out.append(",".join([i, psi, str(BUNDLED / img), str(BUNDLED / scan)]))
     (dst / "positions.csv").write_text("\n".join(out) + "\n")
     return dst
+
+
+@pytest.fixture
+def cli(capfd, tmp_path, monkeypatch):
+    """``lidarcal ARGS`` run by :func:`lidarcal.cli.main` in this process (the imports paid
+    once for the whole matrix), its file descriptors 1 and 2 captured (so whatever OpenCV or
+    libjpeg print there is seen too), in ``tmp_path``; a :class:`subprocess.CompletedProcess`."""
+    from lidarcal.cli import main
+
+    monkeypatch.chdir(tmp_path)
+
+    def run(*args) -> subprocess.CompletedProcess:
+        capfd.readouterr()
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as e:  # argparse
+            code = e.code
+        out, err = capfd.readouterr()
+        return subprocess.CompletedProcess(args, code, out, err)
+    return run
