@@ -340,3 +340,9 @@ def refused(tmp_path: Path, c: Case, run) -> None:
         assert snapshot(w) == before[w], f"{w} was written"
     left = [q.name for q in tmp_path.rglob(".*") if q.name.startswith(".")]
     assert not left, left  # no temporary file left behind
+
+
+def first_per_command(cases: list[Case]) -> list[Case]:
+    """The first case of every command (its id's first word), to run again as a whole
+    process: exit status, nothing else printed."""
+    return list({c.id.split("-")[0]: c for c in reversed(cases)}.values())

@@ -31,6 +31,7 @@ from corrupt_kit import (
     break_scan,
     edit_csv,
     edit_json,
+    first_per_command,
     lidarcal,
     refused,
     registrars,
@@ -530,11 +531,7 @@ def test_refused_with_one_line(tmp_path, cli, c: Case):
     refused(tmp_path, c, cli)
 
 
-# the first case of every command again as a whole process: exit status, nothing else printed
-FIRST = list({c.id.split("-")[0]: c for c in reversed(CASES)}.values())
-
-
-@pytest.mark.parametrize("c", FIRST, ids=[c.id for c in FIRST])
+@pytest.mark.parametrize("c", first_per_command(CASES), ids=lambda c: c.id)
 def test_refused_by_a_real_process(tmp_path, c: Case):
     refused(tmp_path, c, lambda *a: lidarcal(*a, cwd=tmp_path))
 

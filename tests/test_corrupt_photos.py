@@ -30,6 +30,7 @@ from corrupt_kit import (
     break_json,
     break_scan,
     edit_json,
+    first_per_command,
     lidarcal,
     photos_copy,
     refused,
@@ -424,10 +425,6 @@ def test_refused_with_one_line(tmp_path, cli, c: Case):
     refused(tmp_path, c, cli)
 
 
-# the first case of every command again as a whole process: exit status, nothing else printed
-FIRST = list({c.id.split("-")[0]: c for c in reversed(CASES)}.values())
-
-
-@pytest.mark.parametrize("c", FIRST, ids=[c.id for c in FIRST])
+@pytest.mark.parametrize("c", first_per_command(CASES), ids=lambda c: c.id)
 def test_refused_by_a_real_process(tmp_path, c: Case):
     refused(tmp_path, c, lambda *a: lidarcal(*a, cwd=tmp_path))
