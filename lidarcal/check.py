@@ -214,11 +214,10 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     from .pipeline import (
         MIN_POSITIONS,
         _setup_warnings,
-        blur_blackness,
         blur_warning,
         camera_for,
-        dataset_albedo,
         find_boards,
+        matched_albedo,
         small_square_warnings,
     )
     from .workbook import summarise_dataset
@@ -242,11 +241,11 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
         except DatasetError as e:
             res.problems.append(str(e))
     res.boards = boards
-    rho, blur = (None, 0.0) if boards is None else \
-        dataset_albedo(camera, boards, ds.positions, laser_colour=ds.lidar.laser_colour)
-    if blur:
-        boards = blur_blackness(boards, blur)  # as sharp as the stripe frames (as calibrate)
+    rho, blur = None, 0.0
+    if boards is not None:  # as calibrate reads them
+        boards, rho, blur = matched_albedo(camera, boards, ds.positions, ds.lidar.laser_colour)
         res.boards = boards
+    if blur:
         res.notes.append(blur_warning(ds, blur))
     todo = ds.positions
     if progress:

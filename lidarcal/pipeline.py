@@ -53,7 +53,6 @@ from .scan import LidarLines, VSegments, fit_v_lines, split_v
 from .stripe import (
     CameraLines,
     camera_lines,
-    estimate_reflectance_ratio,
     reflectance_samples,
 )
 from .stripe_albedo import albedo_blur, blur_blackness
@@ -230,25 +229,20 @@ def dataset_reflectance_ratio(camera: CameraModel, boards: tuple[BoardView, Boar
                               positions: list[Position], n_images: int = REFLECTANCE_IMAGES,
                               laser_colour: str = "auto") -> float | None:
     """The stripe's black/white reflectance ratio, pooled over a few positions spread over the
-    sweep (a property of board and laser, the same at every position; see
-    :func:`lidarcal.stripe.estimate_reflectance_ratio`). None when it cannot be seen; unreadable
-    images are left to the per-position step, which reports them. ``laser_colour``: how
-    colour stripe images become the laser's response (``lidar.laser_colour``)."""
-    images = []
-    for k in _rho_picks(positions, n_images):
-        try:
-            images.append(_stripe_image(positions[k], camera, laser_colour))
-        except DatasetError:
-            continue
-    return estimate_reflectance_ratio(camera, images, boards) if images else None
+    sweep (a property of board and laser, the same at every position): the ratio of
+    :func:`dataset_albedo`, as calibrate reads it. None when it cannot be seen."""
+    return dataset_albedo(camera, boards, positions, n_images, laser_colour)[0]
 
 
 def dataset_albedo(camera: CameraModel, boards: tuple[BoardView, BoardView],
                    positions: list[Position], n_images: int = REFLECTANCE_IMAGES,
                    laser_colour: str = "auto") -> tuple[float | None, float]:
-    """``(rho, blur_px)``: :func:`dataset_reflectance_ratio` and the stripe frames' blur beyond
-    board.png's (:func:`lidarcal.stripe_albedo.albedo_blur`), from the same few images; blur 0
-    where none is seen, and then rho is :func:`dataset_reflectance_ratio`'s to the bit."""
+    """``(rho, blur_px)``: the stripe's black/white reflectance ratio and the stripe frames' blur
+    beyond board.png's (:func:`lidarcal.stripe_albedo.albedo_blur`), from a few stripe images
+    spread over the sweep (:func:`_rho_picks`); blur 0 where none is seen, and then rho is
+    :func:`lidarcal.stripe.estimate_reflectance_ratio`'s to the bit. Unreadable images are
+    left to the per-position step, which reports them. ``laser_colour``: how colour stripe
+    images become the laser's response (``lidar.laser_colour``)."""
     samples = []
     for k in _rho_picks(positions, n_images):
         try:
@@ -260,6 +254,16 @@ def dataset_albedo(camera: CameraModel, boards: tuple[BoardView, BoardView],
             return None, 0.0
         samples += got
     return albedo_blur(samples) if samples else (None, 0.0)
+
+
+def matched_albedo(camera: CameraModel, boards: tuple[BoardView, BoardView],
+                   positions: list[Position], laser_colour: str = "auto"
+                   ) -> tuple[tuple[BoardView, BoardView], float | None, float]:
+    """``(boards, rho, blur_px)`` as calibrate uses them: :func:`dataset_albedo`, and the
+    boards' blackness maps blurred by the stripe frames' extra blur
+    (:func:`lidarcal.stripe_albedo.blur_blackness`; as they are when none is seen)."""
+    rho, blur = dataset_albedo(camera, boards, positions, laser_colour=laser_colour)
+    return blur_blackness(boards, blur), rho, blur
 
 
 def blur_warning(ds: Dataset, blur_px: float) -> str:
@@ -330,8 +334,8 @@ def calibrate(dataset: str | os.PathLike | Dataset, *, skip: list[int] | tuple =
         mark("boards")
         _WORKER["images"] = images  # an image not decoded yet is read on demand
         # the stripe's reflectance ratio (a few images) while the last images are decoded
-        rho, blur = dataset_albedo(camera, boards, todo, laser_colour=ds.lidar.laser_colour)
-        boards = blur_blackness(boards, blur)  # as sharp as the stripe frames
+        # the boards' albedo maps as sharp as the stripe frames
+        boards, rho, blur = matched_albedo(camera, boards, todo, ds.lidar.laser_colour)
         mark("rho")
         # stopped, not waited for: no thread runs when the workers fork, and the images not
         # decoded yet are decoded by the workers, on both cores, instead of by one thread

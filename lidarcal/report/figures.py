@@ -124,10 +124,10 @@ def _resolve_position(pos, camera: CameraModel, boards, ds: Dataset, cal: dict):
     from .. import pipeline
 
     rho = cal.get("reflectance_ratio", (cal.get("stripe") or {}).get("reflectance_ratio"))
-    if rho is None:
+    if rho is None:  # as calibrate reads it (the boards' maps blurred to the stripe frames')
         used = {int(r["index"]) for r in cal.get("samples", [])}
-        rho = pipeline.dataset_reflectance_ratio(
-            camera, boards, [p for p in ds.positions if p.index in used])
+        boards, rho, _ = pipeline.matched_albedo(
+            camera, boards, [p for p in ds.positions if p.index in used], ds.lidar.laser_colour)
     return pipeline.solve_position(pos, camera, boards, ds.lidar, rho)
 
 
