@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import MAD_TO_SIGMA, median
 from .scan_segments import Line2D
 
 #: at most this share of a segment's returns is searched from each end
@@ -79,7 +80,7 @@ def edge_zones(segments: list[tuple[np.ndarray, Line2D, bool]], z: float = Z_EDG
         (hinge if hinge_last else outer).append(end)
         inner.append(r[depth:len(r) - depth])
     inner_all = np.concatenate(inner)
-    noise = float(1.4826 * np.median(np.abs(inner_all - np.median(inner_all))))
+    noise = MAD_TO_SIGMA * median(np.abs(inner_all - median(inner_all)))
     out = []
     for prof in (np.array(outer), np.array(hinge)):
         mean = prof.mean(axis=0)

@@ -37,14 +37,19 @@ def reflectance_ratio(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     albedo noise are heavy-tailed). None when the blackness under the
     stripes spans less than ``min_contrast`` (the ratio is then not seen).
     """
+    groups = _seen(samples, min_contrast)
+    return None if groups is None else grid_minimum(RATIO_GRID, ratio_costs(groups, RATIO_GRID))
+
+
+def _seen(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]], min_contrast: float
+          ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+    """The stripes of ``samples`` with at least 10 samples, or None when there are none or the
+    blackness under them spans less than ``min_contrast`` (5-95 %: the ratio is not seen)."""
     groups = [(x, m, b) for x, m, b in samples if x is not None and len(x) >= 10]
     if not groups:
         return None
-    ball = np.concatenate([b for _, _, b in groups])
-    b5, b95 = np.percentile(ball, [5, 95])
-    if b95 - b5 < min_contrast:
-        return None
-    return grid_minimum(RATIO_GRID, ratio_costs(groups, RATIO_GRID))
+    b5, b95 = np.percentile(np.concatenate([b for _, _, b in groups]), [5, 95])
+    return groups if b95 - b5 >= min_contrast else None
 
 
 def grid_minimum(grid: np.ndarray, cost: np.ndarray) -> float:
@@ -138,12 +143,8 @@ def albedo_blur(samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     by ``MIN_COST_GAIN`` (checked first at 1.5 px, so a sharp capture costs two evaluations)
     and reaches ``MIN_BLUR_PX``. ``rho`` is None when the ratio is not seen (as there).
     """
-    groups = [(x, m, b) for x, m, b in samples if x is not None and len(x) >= 10]
-    if not groups:
-        return None, 0.0
-    ball = np.concatenate([b for _, _, b in groups])
-    b5, b95 = np.percentile(ball, [5, 95])
-    if b95 - b5 < min_contrast:
+    groups = _seen(samples, min_contrast)
+    if groups is None:
         return None, 0.0
 
     def cost(s: float, grid: np.ndarray = _COARSE) -> float:
