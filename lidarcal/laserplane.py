@@ -79,6 +79,8 @@ class PhotoResult:
     rms_px: float | None = None
     board_plane: Plane | None = None
     problem: str | None = None
+    #: the photo's size (w, h) when it is not the camera's (it was then not measured)
+    other_size: tuple[int, int] | None = None
 
     @property
     def used(self) -> bool:
@@ -230,7 +232,8 @@ def max_board_rms_px(camera: CameraModel) -> float:
 
 
 def read_photo(path: Path, image_size: tuple[int, int]) -> tuple[np.ndarray | None, str | None]:
-    """The photo (BGR) in the camera's orientation, or its problem.
+    """The photo (BGR) in the camera's orientation, or its problem (a photo of another size
+    comes back with its problem, to be named).
 
     OpenCV turns a JPEG by its EXIF orientation tag; a phone held upright stores the
     sensor's (landscape) pixels and tags them "rotate 90": turned, the photo no longer
@@ -247,8 +250,8 @@ def read_photo(path: Path, image_size: tuple[int, int]) -> tuple[np.ndarray | No
         raw = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if raw is not None and (raw.shape[1], raw.shape[0]) == size:
             return raw, None
-        return None, (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
-                      f"{size[0]}x{size[1]}")
+        return img, (f"image is {img.shape[1]}x{img.shape[0]}, the camera's is "
+                     f"{size[0]}x{size[1]}")
     return img, None
 
 
@@ -272,6 +275,8 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
     img, problem = read_photo(path, camera.image_size)
     if problem:
         res.problem = problem
+        if img is not None:
+            res.other_size = (img.shape[1], img.shape[0])
         return res
     colour = detect_laser_colour(img) if laser_colour == "auto" else laser_colour
     response = laser_response(img, colour)
@@ -412,12 +417,13 @@ def laser_plane(folder: str | Path, board: BoardSpec, camera: CameraModel,
         raise DatasetError(folder, "holds no .png/.jpg/.bmp/.tif photos; give the folder that "
                                  "holds them")
     photos = [measure_photo(p, camera, board, laser_colour) for p in paths]
-    sizes = {(p.problem or "").split(", the camera's")[0] for p in photos}
-    if len(sizes) == 1 and all((p.problem or "").startswith("image is ") for p in photos):
+    sizes = {p.other_size for p in photos}
+    if len(sizes) == 1 and None not in sizes:  # every photo of one other size
+        w, h = sizes.pop()
         raise DatasetError(Path(camera.source), f"image_size is {camera.image_size[0]}x"
                                                 f"{camera.image_size[1]} but every photo is "
-                                                f"{sizes.pop()[len('image is '):]}; give the "
-                                                "camera.json of the camera that took them")
+                                                f"{w}x{h}; give the camera.json of the camera "
+                                                "that took them")
     try:
         plane, rms, s_ang, s_d, warn = fit_laser_plane(photos)
     except ValueError as e:
