@@ -63,12 +63,14 @@ def jpeg_photos(tmp_path_factory) -> Path:
 def test_jpeg_photos_of_real_boards_give_the_plane(jpeg_photos) -> None:
     r, ang, off, used = _errors(jpeg_photos)
     assert len(used) == 4, r.warnings
-    assert ang < 0.3 and off < 1.5
-    assert r.rms_mm < 1.5  # ~0.4 px of 1.9 mm
+    # seeds 3/5/7 measured: 0.065-0.108 deg, 0.066-0.137 mm, rms 0.77-0.86 mm (~0.4 px of 1.9 mm)
+    assert ang < 0.2 and off < 0.4
+    assert r.rms_mm < 1.2
     truth, _ = _truth(jpeg_photos)
     for p in used:  # every photo's stripe on the true plane, none off by a pixel
         d = truth.distance(p.points_mm)
-        assert np.sqrt(np.mean(d ** 2)) < 1.5 and np.abs(d).max() < 5.0, p.name
+        # measured: rms 0.52-1.04 mm, largest 1.2-2.8 mm
+        assert np.sqrt(np.mean(d ** 2)) < 1.3 and np.abs(d).max() < 4.0, p.name
 
 
 def test_portrait_exif_photo_is_read_as_the_sensor_stored_it(tmp_path) -> None:
@@ -106,7 +108,8 @@ def test_large_photos_use_a_board_fit_per_focal_length(tmp_path) -> None:
     assert read_camera_json(out / "camera.json").image_size == (1600, 1200)
     r, ang, off, used = _errors(out)
     assert len(used) == 2, r.warnings
-    assert ang < 0.3 and off < 1.5 and r.rms_mm < 1.0
+    # seeds 4/6 measured: 0.009-0.028 deg, 0.003-0.040 mm, rms 0.32-0.35 mm
+    assert ang < 0.1 and off < 0.2 and r.rms_mm < 0.6
 
 
 def _stripe_with_fringes(angle_deg: float, rng) -> tuple[np.ndarray, np.ndarray]:
