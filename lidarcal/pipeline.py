@@ -635,6 +635,10 @@ def calibration_dict(res: CalibrationResult, command: str | None = None) -> dict
         out["sigma"] = sigma_block(res.joint_model, res.positions)
     if res.method == "joint" and getattr(res.joint_model, "ranging", None) is not None:
         out["ranging"] = res.joint_model.ranging.to_dict()  # lidarcal.ranging
+    zones = res.joint_model.info.get("scan_edge_zones") if res.joint_model is not None else None
+    if zones is not None:  # lidarcal.scan_edges: returns dropped at each segment's ends
+        out["scan_edge_zones"] = {"outer_returns": zones.outer, "hinge_returns": zones.hinge,
+                                  "noise_mm": _finite_or_none(zones.noise_mm)}
     if res.joint_model is not None and res.joint_model.info.get("fit_planes"):
         # --fit-planes: the board planes the joint fit refined (``boards`` keeps the camera's)
         out["boards_joint"] = [pl.to_dict() for pl in res.joint_model.info["board_planes"]]

@@ -233,3 +233,19 @@ def test_a_360_deg_scan_with_the_v_across_its_first_and_last_beams():
         err = [np.abs(scan_range_errors(truth_scan_line(td, 0, b), ang[idx], r[idx])["error_mm"])
                for b in (0, 1)]
         assert min(np.median(e) for e in err) < 3 * rig.range_noise_mm
+
+
+def test_calibration_json_reports_the_edge_zones(camera_side, tmp_path):
+    """calibration.json says how many returns the joint fit dropped at each segment end: none on
+    a spot about a beam spacing wide, several at both ends with a spot ~10 beam spacings wide."""
+    wide, _ = rescanned(camera_side, tmp_path / "wide", beam_exit_mm=10.0, beam_divergence_mrad=10.0)
+    reported = {}
+    for name, ds in (("narrow", camera_side), ("wide", wide)):
+        out = tmp_path / f"out_{name}"
+        proc = subprocess.run([sys.executable, "-m", "lidarcal", "calibrate", str(ds), "--out", str(out)],
+                              check=False, capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+        reported[name] = json.loads((out / "calibration.json").read_text())["scan_edge_zones"]
+    assert reported["narrow"]["outer_returns"] == reported["narrow"]["hinge_returns"] == 0
+    assert reported["wide"]["outer_returns"] >= 2 and reported["wide"]["hinge_returns"] >= 2
+    assert 0 < reported["wide"]["noise_mm"] < 5 * RIG.range_noise_mm

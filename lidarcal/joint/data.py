@@ -26,6 +26,8 @@ class JointData:
     Ranging (:mod:`lidarcal.ranging`): ``board_spec`` and ``black_parity`` (per
     board, :func:`lidarcal.ranging.black_parity`) let the fit tell which returns
     hit a black square; ``scan_dark`` (M,) gives that directly instead (0..1, held).
+    ``edge_zones``: the returns dropped at the ends of every scan segment before the fit
+    (:func:`lidarcal.scan_edges.edge_zones`; None: not searched).
     """
 
     camera: CameraModel
@@ -46,6 +48,7 @@ class JointData:
     board_spec: BoardSpec | None = None
     black_parity: tuple[int | None, int | None] | None = None
     scan_dark: np.ndarray | None = None
+    edge_zones: EdgeZones | None = None
 
     @property
     def n_positions(self) -> int:
@@ -195,9 +198,10 @@ def joint_data(result, board_poses: str = "homography") -> JointData:
         from ..ranging import black_parity
 
         parity = tuple(black_parity(b, result.camera, spec) for b in boards)
-    return build_joint_data(result.camera, [p.psi_deg for p in result.positions], scans, stripes,
+    data = build_joint_data(result.camera, [p.psi_deg for p in result.positions], scans, stripes,
                             np.array([b.R_pnp if pnp else b.R for b in boards]),
                             np.array([b.T_pnp if pnp else b.T for b in boards]),
                             [b.corners_px for b in boards] if obj is not None else None, obj,
                             [p.pose for p in result.positions], [p.index for p in result.positions],
                             spec, parity, points)
+    return replace(data, edge_zones=zones)

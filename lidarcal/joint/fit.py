@@ -264,7 +264,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
             "n_scan": len(rs), "n_stripe": len(rp), "stripes": len(data.stripe_px) > 0,
             "rejected_scan": int((prob.scan.w == 0).sum()),
             "rejected_stripe": int((prob.stripe.w == 0).sum()), "jitter": jit,
-            "scan_dark": prob.dark, "ranging_covariance": cov_all[N_RIG:, N_RIG:],
+            "scan_dark": prob.dark, "scan_edge_zones": data.edge_zones, "ranging_covariance": cov_all[N_RIG:, N_RIG:],
             "ranging_rig_covariance": cov_all[N_RIG:, :N_RIG]}
     model = JointModel(axis, psi_ref, base.R, base.T, cov, noise, tuple(warn), info,
                        jitter_deg, corrections, rmodel)
