@@ -31,8 +31,9 @@ report: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/lidarcal planes data/real_tapas --pattern 8x5 --square-mm 100 \
 		--camera data/real_tapas/camera.json --out reports/real_tapas
 	MPLBACKEND=Agg $(BIN)/lidarcal workbook data/real_tapas --out reports/workbook-real.pdf
+	MPLBACKEND=Agg $(BIN)/lidarcal report data/real_tapas --out reports/real_tapas/report.pdf
 	@echo "wrote reports/calibration-report.pdf, reports/workbook.pdf (the turntable rig) and"
-	@echo "reports/workbook-real.pdf, reports/real_tapas/ (one flat board, real data)"
+	@echo "reports/workbook-real.pdf, reports/real_tapas/ (one flat board, real data: report.pdf)"
 
 lab: $(STAMP)  # JupyterLab on the workbook (set DATASET in each notebook's first code cell)
 	$(BIN)/jupyter lab notebooks

@@ -262,11 +262,21 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--index", type=int, required=True, help="position index")
     s.add_argument("--out", type=Path, required=True, help="PNG path")
 
-    s = sub.add_parser("report", help="write the PDF calibration report")
-    s.add_argument("dataset", type=Path)
+    s = sub.add_parser("report", help="write the PDF calibration report (a turntable dataset, or a "
+                                      "folder of photo + scan pairs: the one-board method)")
+    s.add_argument("dataset", type=Path, help="dataset folder, or folder of NAME.png|jpg + NAME.csv "
+                                              "pairs with camera.json")
     s.add_argument("--out", type=Path, required=True, help="report PDF path")
-    s.add_argument("--calibration", type=Path, default=None)
+    s.add_argument("--calibration", type=Path, default=None,
+                   help="calibration.json to show (a pairs folder: an extrinsics.json to score on "
+                        "these views)")
     s.add_argument("--measurements", type=Path, default=None)
+    s.add_argument("--camera", type=Path, default=None,
+                   help="pairs folder only: camera.json (default: FOLDER/camera.json)")
+    s.add_argument("--pattern", type=_pattern, default=None,
+                   help="pairs folder only: inner corners (default: FOLDER/board.json)")
+    s.add_argument("--square-mm", type=_positive, default=None,
+                   help="pairs folder only: side of a square, mm (default: FOLDER/board.json)")
 
     s = sub.add_parser("check", help="check a dataset before calibrating: detections per position, "
                                      "no fits; exit 0 usable, 1 problems, 2 unreadable")
@@ -532,10 +542,30 @@ def _cmd_cloud(a: argparse.Namespace) -> int:
 
 def _cmd_report(a: argparse.Namespace) -> int:
     from .report import write_report
+    from .workbook import input_kind
 
     check_output(a.out, "file")
+    command = " ".join(["lidarcal", *sys.argv[1:]])
+    pairs_only = [f"--{k.replace('_', '-')}" for k in ("camera", "pattern", "square_mm")
+                  if getattr(a, k) is not None]
+    if a.camera is not None or input_kind(a.dataset) == "view-pairs":
+        from .io.pairs import board_spec
+        from .report.oneboard import write_oneboard_report
+
+        if a.measurements is not None:
+            raise DatasetError(a.measurements, "a folder of photo + scan pairs has no measurements; "
+                                               "leave --measurements out")
+        path = write_oneboard_report(a.dataset, a.out, a.camera or a.dataset / "camera.json",
+                                     board_spec(a.dataset, a.pattern, a.square_mm),
+                                     calibration=a.calibration, command=command)
+        print(f"wrote {path}")
+        return 0
+    if pairs_only:
+        raise DatasetError(a.dataset, f"{', '.join(pairs_only)}: for a folder of photo + scan "
+                                      "pairs only; a turntable dataset names its camera and boards "
+                                      "in dataset.json")
     path = write_report(a.dataset, a.out, calibration=a.calibration, measurements=a.measurements,
-                        command=" ".join(["lidarcal", *sys.argv[1:]]))
+                        command=command)
     print(f"wrote {path}")
     return 0
 
