@@ -49,30 +49,38 @@ def test_window_centroid_is_the_overlap_weighted_centroid(seed) -> None:
     assert np.nanmax(np.abs(got - ref)) < 1e-9
 
 
-def _saturated_reference(prof, s, cen):
-    out = cen.copy()
+def _saturated_reference(prof, s, cen, peak):
+    out, pk = cen.copy(), peak.copy()
     n = s.shape[1]
     for i in range(len(prof)):
         top = prof[i].max()
-        if (prof[i] >= top - 1).sum() < 3 or top < sp.SATURATED_DN or not np.isfinite(cen[i]):
+        if top < sp.SATURATED_DN or not np.isfinite(cen[i]):
+            continue
+        flat = prof[i] >= top - 1
+        best, end, run = 0, 0, 0
+        for j in range(n):  # the longest run of flat samples (the first of equal ones)
+            run = run + 1 if flat[j] else 0
+            if run > best:
+                best, end = run, j
+        if best < 3:
             continue
         row = s[i]
-        k = int(np.clip(np.rint(cen[i]), 0, n - 1))
-        half = 0.5 * row.max()
-        if row[k] < half:
-            continue
-        a = k
-        while a > 0 and row[a - 1] >= half:
+        p0, p1 = end - best + 1, end
+        head = min(row[p0], row[p1])
+        h = 0.5 * head
+        a = p0
+        while a > 0 and row[a - 1] >= h:
             a -= 1
-        b = k
-        while b < n - 1 and row[b + 1] >= half:
+        b = p1
+        while b < n - 1 and row[b + 1] >= h:
             b += 1
-        if a == 0 or b == n - 1:
+        if head <= 0 or a == 0 or b == n - 1:
             continue
-        left = a - (row[a] - half) / max(row[a] - row[a - 1], 1e-6)
-        right = b + (row[b] - half) / max(row[b] - row[b + 1], 1e-6)
+        left = a - (row[a] - h) / max(row[a] - row[a - 1], 1e-6)
+        right = b + (row[b] - h) / max(row[b] - row[b + 1], 1e-6)
         out[i] = 0.5 * (left + right)
-    return out
+        pk[i] = head * np.sqrt(best)
+    return out, pk
 
 
 def test_saturated_centres_match_the_run_definition() -> None:
@@ -82,14 +90,17 @@ def test_saturated_centres_match_the_run_definition() -> None:
     prof = np.clip(600 * np.exp(-0.5 * ((j - c[:, None]) / 2.0) ** 2) + rng.normal(0, 2, (200, 45)),
                    0, 255).round()
     prof[::7] *= 0.3  # unsaturated rows keep their centroid
+    prof[3, 2] = 255.0  # a hot pixel beside a clipped core: not its plateau
     s = prof - 3.0
     cen = c + rng.normal(0, 0.3, 200)
     cen[5] = np.nan
-    got = sp._saturated_centres(prof, s, cen)
-    ref = _saturated_reference(prof, s, cen)
+    peak = s.max(axis=1)
+    got, pk = sp._saturated_centres(prof, s, cen, peak)
+    ref, pk_ref = _saturated_reference(prof, s, cen, peak)
     assert np.array_equal(np.isnan(got), np.isnan(ref))
-    assert np.nanmax(np.abs(got - ref)) < 1e-12
+    assert np.nanmax(np.abs(got - ref)) < 1e-12 and np.max(np.abs(pk - pk_ref)) < 1e-9
     assert np.sum(got != cen) > 50  # the clipped rows were re-centred
+    assert np.abs(got - c)[pk > peak].max() < 0.1  # on the truth (to the flanks' interpolation)
 
 
 def test_incremental_passes_equal_full_passes(monkeypatch) -> None:
