@@ -17,8 +17,8 @@ import numpy as np
 from .camera import undistort_pixels
 from .geometry import MAD_TO_SIGMA, median
 from .io.dataset import CameraModel
-from .laser_colour import SATURATED_DN
 from .stripe_albedo import reflectance_ratio
+from .stripe_clipped import _saturated_centres, clipped_core_pixels, fwhm_run
 from .stripe_quality import quality_problem, stripe_quality
 
 
@@ -151,32 +151,11 @@ def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
         if found is not None:
             return found[0] + np.array([x0, y0], float), found[1]
     found = _bright_line(_gaussian_blur(img if raw8 is None else raw8, 1.5), mask, noise)
-    return found if found is not None else _clipped_line(img if raw8 is None else raw8, mask)
-
-
-def _clipped_line(img: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Rough line (point, unit direction) of a clipped stripe on a lit board, or None.
-
-    With the room lights on and the laser overexposed, the stripe's core is clipped at the
-    image's top level while the lit white squares lie only a few noise sigmas below it:
-    no threshold above the background tells them apart (:func:`_bright_line` finds
-    nothing), but the clipped core does. The pixels whose 2 x 2 block is all within 1 DN of
-    the masked maximum (the clip level; noise clips single pixels of a bright square, and
-    a hot pixel is one pixel) are fitted by PCA as there; None when fewer than 10, or when
-    they spread more than ``BLOB_SPREAD_PX`` about their line (clipped squares or a lamp,
-    not a stripe).
-    """
-    vals = img[mask]
-    if vals.size < 20:
-        return None
-    top = vals.max()
-    clipped = ((img >= top - 1) & mask).astype(np.uint8)
-    blocks = cv2.erode(clipped, np.ones((2, 2), np.uint8), anchor=(0, 0),
-                       borderType=cv2.BORDER_CONSTANT, borderValue=0)
-    found = cv2.findNonZero(blocks)
-    if found is None or len(found) < 10:
-        return None
-    line = _pca_line(found.reshape(-1, 2).astype(float) + 0.5, 1.0)
+    if found is not None:
+        return found
+    # a clipped stripe on a lit board: its clipped core (stripe_clipped.clipped_core_pixels)
+    P = clipped_core_pixels(img if raw8 is None else raw8, mask)
+    line = None if P is None else _pca_line(P, 1.0)
     return None if line is None or line[2] > BLOB_SPREAD_PX else line[:2]
 
 
@@ -397,12 +376,17 @@ def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | No
     1. Robust noise level (MAD of pixel differences) and a coarse stripe line
        (PCA of the brightest pixels): its direction decides whether the
        stripe is sampled by columns (|slope| <= 1) or by rows.
-    2. Stripe width from the median profile; per column, a window of a few
-       widths around the predicted centre; background from the window's two
+    2. Stripe width from the median profile (with ``blackness``: of the profiles less
+       their background, the run above half the peak, so a lit square beside the stripe
+       does not widen it); per column, a window of a few widths around the predicted
+       centre; background from the window's two
        outer thirds (a straight line; with ``blackness``, ambient light
        reflected by the squares: ``b0 + b1 * blackness``).
-    3. Centre = iterated symmetric-window centroid (robust to saturation);
-       columns whose peak is below ``min_snr`` noise sigmas are dropped.
+    3. Centre = iterated symmetric-window centroid; a clipped profile's centre is the
+       midpoint of its run above half the smaller headroom of its two flanks
+       (:func:`_saturated_centres`; on a lit board the white squares leave less room
+       below the clip than the black ones), dropped where the albedo changes under that
+       run; columns whose peak is below ``min_snr`` noise sigmas are dropped.
     4. With ``blackness`` (0 on white, 1 on black squares, as seen in the
        bright image; :meth:`lidarcal.board.BoardView.blackness_map`) each
        profile is divided by the stripe's albedo ``1 - (1 - rho) blackness``
@@ -587,9 +571,9 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
     # stripe width from a first look: median FWHM of the profiles
     L0 = min(30, (H - 1) // 2)
     prof, top = _profiles(img, cols, y_pred, L0)
-    if blk is not None:
+    if blk is not None:  # a lit board: its squares' steps are background, not stripe
         bprof0 = np.clip(_profiles_at(blk, cols, top, 2 * L0 + 1), 0.0, 1.0)
-        width = _fwhm_run(prof - _background(prof, bprof0), noise)
+        width = fwhm_run(prof - _background(prof, bprof0), noise)
     else:
         width = _fwhm(prof, noise)
     L = int(min(max(np.ceil(4 * width) + 6, 10), (H - 1) // 2))
@@ -675,75 +659,6 @@ def _column_pass(img: np.ndarray, blk: np.ndarray | None, cols: np.ndarray, top:
     return prof, bprof, s, start, peak, cen
 
 
-def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray, peak: np.ndarray,
-                       bprof: np.ndarray | None = None, noise: float = 0.0
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Centres and peaks of clipped profiles: the midpoint of the run above a level ``h``
-    through the clipped plateau, its two edges interpolated linearly (sub-pixel) on the
-    unclipped flanks.
-
-    A profile is clipped when its maximum is ``SATURATED_DN`` or more and at least 3
-    consecutive samples lie within 1 DN of it (a saturated laser core is a flat top: that
-    maximum is the clip level, read from the profile). ``s`` is the background-free
-    profile; the clip leaves ``s`` at most ``top - background`` (the headroom), which on a
-    lit board differs between white and black squares: ``h`` is half the smaller headroom
-    at the plateau's two ends, so both edges lie on samples that are not clipped and a
-    symmetric stripe's midpoint is its centre. The peak of a clipped profile (a lower
-    bound of its signal) is that headroom times the square root of the plateau's length
-    (the plateau's samples are all at least that far above the background).
-
-    With ``bprof`` (blackness under the profile, 0 white to 1 black) a clipped profile
-    whose blackness changes over the run and its edge samples by more than ``noise / h``
-    (an albedo change that moves an edge by more than the noise would, for a black/white
-    reflectance ratio of 0: the ratio estimated from clipped frames is not trusted) is
-    dropped (centre NaN): its flanks see two albedos (and a blooming halo that does not follow the albedo),
-    so the run is not symmetric about the stripe, and the clip hides the core that would
-    tell. Other profiles keep their centroid ``cen`` and ``peak``.
-    """
-    top = _row_max(prof)
-    rows = np.flatnonzero((top >= SATURATED_DN) & np.isfinite(cen))
-    out, pk = cen.copy(), peak.copy()
-    if rows.size == 0:
-        return out, pk
-    flat = prof[rows] >= top[rows, None] - 1
-    m, n = flat.shape
-    run = np.zeros(m, np.intp)
-    best = np.zeros(m, np.intp)
-    end = np.zeros(m, np.intp)
-    for j in range(n):  # the longest run of flat samples (a hot pixel is one sample)
-        run = np.where(flat[:, j], run + 1, 0)
-        longer = run > best
-        best[longer], end[longer] = run[longer], j
-    use = best >= 3
-    rows, p1, best = rows[use], end[use], best[use]
-    if rows.size == 0:
-        return out, pk
-    p0 = p1 - best + 1
-    S = s[rows]
-    r = np.arange(len(rows))
-    head = np.minimum(S[r, p0], S[r, p1])
-    h = 0.5 * head
-    idx = np.arange(n)[None, :]
-    below = S < h[:, None]
-    # the run of samples >= h through the plateau: from after the last one below h on the
-    # left to before the first one below h on the right
-    a = np.max(np.where(below & (idx < p0[:, None]), idx, -1), axis=1) + 1
-    b = np.min(np.where(below & (idx > p1[:, None]), idx, n), axis=1) - 1
-    inside = (head > 0) & (a > 0) & (b < n - 1)  # an edge outside the window: keep the centroid
-    r, a, b, h, head = r[inside], a[inside], b[inside], h[inside], head[inside]
-    left = a - (S[r, a] - h) / np.maximum(S[r, a] - S[r, a - 1], 1e-6)
-    right = b + (S[r, b] - h) / np.maximum(S[r, b] - S[r, b + 1], 1e-6)
-    rr = rows[inside]
-    out[rr] = 0.5 * (left + right)
-    pk[rr] = head * np.sqrt(best[inside])
-    if bprof is not None:
-        span = (idx >= (a - 1)[:, None]) & (idx <= (b + 1)[:, None])
-        B = bprof[rr]
-        db = np.max(np.where(span, B, -np.inf), axis=1) - np.min(np.where(span, B, np.inf), axis=1)
-        out[rr[db * h > max(noise, 1e-6)]] = np.nan
-    return out, pk
-
-
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing of each profile (along axis 1)."""
     return cv2.filter2D(s.astype(np.float32), -1, _gauss_kernel(sigma),
@@ -770,23 +685,6 @@ def _fwhm(prof: np.ndarray, noise: float) -> float:
         return 3.0
     widths = np.add.reduce(s > 0.5 * pk, axis=0, dtype=np.intp)[good]
     return min(max(median(widths), 1.0), 30.0)
-
-
-def _fwhm_run(s: np.ndarray, noise: float) -> float:
-    """Median FWHM (px) of background-free profiles (M, W) with a clear peak: the run of
-    samples above half the peak through the peak."""
-    n = s.shape[1]
-    k = np.argmax(s, axis=1)
-    pk = s[np.arange(len(s)), k]
-    good = pk > 8 * noise
-    if good.sum() < 3:
-        return 3.0
-    s, k, pk = s[good], k[good], pk[good]
-    idx = np.arange(n)[None, :]
-    below = s <= 0.5 * pk[:, None]
-    a = np.max(np.where(below & (idx < k[:, None]), idx, -1), axis=1) + 1
-    b = np.min(np.where(below & (idx > k[:, None]), idx, n), axis=1) - 1
-    return min(max(median((b - a + 1).astype(float)), 1.0), 30.0)
 
 
 def _reject_outliers(pts: np.ndarray, camera: CameraModel | None,

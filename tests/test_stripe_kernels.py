@@ -9,6 +9,7 @@ import pytest
 
 from lidarcal import stripe_profile as sp
 from lidarcal.geometry import median
+from lidarcal.laser_colour import SATURATED_DN
 from lidarcal.scan import fit_line_2d
 
 
@@ -54,7 +55,7 @@ def _saturated_reference(prof, s, cen, peak):
     n = s.shape[1]
     for i in range(len(prof)):
         top = prof[i].max()
-        if top < sp.SATURATED_DN or not np.isfinite(cen[i]):
+        if top < SATURATED_DN or not np.isfinite(cen[i]):
             continue
         flat = prof[i] >= top - 1
         best, end, run = 0, 0, 0
