@@ -86,6 +86,11 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray, peak: n
     bound of its signal) is that headroom times the square root of the plateau's length
     (the plateau's samples are all at least that far above the background).
 
+    Without ``bprof`` (no albedo map: :func:`lidarcal.laserplane.laser_plane`'s photos)
+    the run through the centroid is taken as before (:func:`_run_centres`), the peaks
+    left alone: a run over a square edge cannot be told there, and a raised peak would
+    let such runs through the gates.
+
     With ``bprof`` (blackness under the profile, 0 white to 1 black) a clipped profile
     whose blackness changes over the run and its edge samples by more than ``noise / h``
     (an albedo change that moves an edge by more than the noise would, for a black/white
@@ -96,6 +101,8 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray, peak: n
     scripts/capture_sweep.py such runs were the white square's clipped tail of a stripe on
     the black one, 2-3 px off). Other profiles keep their centroid ``cen`` and ``peak``.
     """
+    if bprof is None:
+        return _run_centres(prof, s, cen), peak
     top = np.ascontiguousarray(prof.T).max(axis=0)
     rows = np.flatnonzero((top >= SATURATED_DN) & np.isfinite(cen))
     out, pk = cen.copy(), peak.copy()
@@ -138,3 +145,40 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray, peak: n
         db = np.max(np.where(span, B, -np.inf), axis=1) - np.min(np.where(span, B, np.inf), axis=1)
         out[rr[db * h > max(noise, 1e-6)]] = np.nan
     return out, pk
+
+
+def _run_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.ndarray:
+    """Centres of clipped profiles without a blackness map: the midpoint of the run above half
+    the peak through the centroid ``cen``, its two edges interpolated linearly (sub-pixel) on
+    the unsaturated flanks.
+
+    A profile is clipped when at least 3 samples lie within 1 DN of its maximum and that
+    maximum is ``SATURATED_DN`` or more (a saturated laser core is a flat top). Other
+    profiles, and those whose run reaches the window's end or does not hold the centroid,
+    keep their centroid ``cen``. (Without the squares' albedo, a run over a square edge
+    cannot be told from one on a single square: the run through the centroid, whose
+    window is symmetric about it, is the one taken.)
+    """
+    top = np.ascontiguousarray(prof.T).max(axis=0)
+    rows = np.flatnonzero((top >= SATURATED_DN) & np.isfinite(cen))
+    rows = rows[np.count_nonzero(prof[rows] >= top[rows, None] - 1, axis=1) >= 3]  # flat tops
+    out = cen.copy()
+    if rows.size == 0:
+        return out
+    n = s.shape[1]
+    S = s[rows]
+    k = np.clip(np.rint(cen[rows]), 0, n - 1).astype(np.intp)
+    half = 0.5 * S.max(axis=1)
+    r = np.arange(len(rows))
+    idx = np.arange(n)[None, :]
+    below = S < half[:, None]
+    # the run of samples >= half through k: from after the last one below it on the left
+    # to before the first one below it on the right
+    a = np.max(np.where(below & (idx < k[:, None]), idx, -1), axis=1) + 1
+    b = np.min(np.where(below & (idx > k[:, None]), idx, n), axis=1) - 1
+    use = ~below[r, k] & (a > 0) & (b < n - 1)  # an edge outside the window: keep the centroid
+    r, a, b, h = r[use], a[use], b[use], half[use]
+    left = a - (S[r, a] - h) / np.maximum(S[r, a] - S[r, a - 1], 1e-6)
+    right = b + (S[r, b] - h) / np.maximum(S[r, b] - S[r, b + 1], 1e-6)
+    out[rows[use]] = 0.5 * (left + right)
+    return out

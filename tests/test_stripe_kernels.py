@@ -96,12 +96,43 @@ def test_saturated_centres_match_the_run_definition() -> None:
     cen = c + rng.normal(0, 0.3, 200)
     cen[5] = np.nan
     peak = s.max(axis=1)
-    got, pk = sp._saturated_centres(prof, s, cen, peak)
+    got, pk = sp._saturated_centres(prof, s, cen, peak, np.zeros_like(s), noise=2.0)
     ref, pk_ref = _saturated_reference(prof, s, cen, peak)
     assert np.array_equal(np.isnan(got), np.isnan(ref))
     assert np.nanmax(np.abs(got - ref)) < 1e-12 and np.max(np.abs(pk - pk_ref)) < 1e-9
     assert np.sum(got != cen) > 50  # the clipped rows were re-centred
     assert np.abs(got - c)[pk > peak].max() < 0.1  # on the truth (to the flanks' interpolation)
+    # without a blackness map: the run through the centroid, the peaks as they were
+    got, pk = sp._saturated_centres(prof, s, cen, peak)
+    ref = _run_reference(prof, s, cen)
+    assert np.array_equal(np.isnan(got), np.isnan(ref)) and np.nanmax(np.abs(got - ref)) < 1e-12
+    assert np.array_equal(pk, peak)
+
+
+def _run_reference(prof, s, cen):
+    out = cen.copy()
+    n = s.shape[1]
+    for i in range(len(prof)):
+        top = prof[i].max()
+        if (prof[i] >= top - 1).sum() < 3 or top < SATURATED_DN or not np.isfinite(cen[i]):
+            continue
+        row = s[i]
+        k = int(np.clip(np.rint(cen[i]), 0, n - 1))
+        half = 0.5 * row.max()
+        if row[k] < half:
+            continue
+        a = k
+        while a > 0 and row[a - 1] >= half:
+            a -= 1
+        b = k
+        while b < n - 1 and row[b + 1] >= half:
+            b += 1
+        if a == 0 or b == n - 1:
+            continue
+        left = a - (row[a] - half) / max(row[a] - row[a - 1], 1e-6)
+        right = b + (row[b] - half) / max(row[b] - row[b + 1], 1e-6)
+        out[i] = 0.5 * (left + right)
+    return out
 
 
 def test_incremental_passes_equal_full_passes(monkeypatch) -> None:
