@@ -139,11 +139,11 @@ def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray, peak: n
     rr = rows[inside]
     out[rr] = 0.5 * (left + right)
     pk[rr] = head * np.sqrt(best[inside])
-    if bprof is not None:
-        span = (idx >= (a - 1)[:, None]) & (idx <= (b + 1)[:, None])
-        B = bprof[rr]
-        db = np.max(np.where(span, B, -np.inf), axis=1) - np.min(np.where(span, B, np.inf), axis=1)
-        out[rr[db * h > max(noise, 1e-6)]] = np.nan
+    # the albedo under the run and its edge samples: one square, or the profile is dropped
+    span = (idx >= (a - 1)[:, None]) & (idx <= (b + 1)[:, None])
+    B = bprof[rr]
+    db = np.max(np.where(span, B, -np.inf), axis=1) - np.min(np.where(span, B, np.inf), axis=1)
+    out[rr[db * h > max(noise, 1e-6)]] = np.nan
     return out, pk
 
 
