@@ -95,6 +95,36 @@ def truth_lines(truth: dict, index: int, order: list[int] | None = None
     return E, l, float(np.arccos(np.clip(l[0] @ l[1], -1.0, 1.0)))
 
 
+def stripe_errors_px(centres_px: np.ndarray, truth: dict, index: int, board: int,
+                     image_size: tuple[int, int]) -> np.ndarray:
+    """Signed distances (px, (N,)) of stripe centres ``centres_px`` (N, 2) on board ``board``
+    (truth.json's index) at position ``index`` from the true stripe: the line where the truth
+    laser plane (the LiDAR's z = 0 plane) cuts that board's plane (eq. 5 read backwards),
+    projected through the true camera with its distortion (``cv2.projectPoints``) and
+    sampled every ~0.05 px; each centre's distance along the curve's normal to its nearest
+    sample."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    B = truth_board_planes(truth)[board]
+    laser = truth_laser_plane(truth_poses(truth)[index])
+    d = np.cross(B.normal, laser.normal)
+    d /= np.linalg.norm(d)
+    p0 = np.linalg.solve(np.vstack([B.normal, laser.normal, d]), np.array([B.d, laser.d, 0.0]))
+    t = (np.asarray(truth["boards"][board]["outline_mm"], float) - p0) @ d
+    cam = truth_camera(truth, image_size)
+    ends, _ = cv2.projectPoints(p0 + np.array([t.min(), t.max()])[:, None] * d, np.zeros(3),
+                                np.zeros(3), cam.K, cam.dist)
+    n = int(np.ceil(20 * np.linalg.norm(np.ptp(ends.reshape(-1, 2), axis=0)))) + 2
+    X = p0 + np.linspace(t.min(), t.max(), n)[:, None] * d
+    curve = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cam.K, cam.dist)[0].reshape(-1, 2)
+    pts = np.asarray(centres_px, float).reshape(-1, 2)
+    i = np.clip(cKDTree(curve).query(pts)[1], 1, len(curve) - 2)
+    tan = curve[i + 1] - curve[i - 1]
+    tan /= np.linalg.norm(tan, axis=1)[:, None]
+    return np.sum((pts - curve[i]) * np.column_stack([-tan[:, 1], tan[:, 0]]), axis=1)
+
+
 def truth_scan_line(truth: dict, index: int, board: int):
     """Board ``board`` (truth.json's index) seen in the LiDAR plane at position ``index``: the
     board plane ``n . X = d`` with ``X = R x + T`` (``X_cam = R @ X_lidar + T``) cut by the

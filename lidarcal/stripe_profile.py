@@ -17,8 +17,8 @@ import numpy as np
 from .camera import undistort_pixels
 from .geometry import MAD_TO_SIGMA, median
 from .io.dataset import CameraModel
-from .laser_colour import SATURATED_DN
 from .stripe_albedo import reflectance_ratio
+from .stripe_clipped import _saturated_centres, clipped_core_pixels, fwhm_run
 from .stripe_quality import quality_problem, stripe_quality
 
 
@@ -150,9 +150,13 @@ def _coarse_line(img: np.ndarray, mask: np.ndarray, noise: float,
         found = _bright_line(_coarse_blur(small), msmall, noise, scale=2.0)
         if found is not None:
             return found[0] + np.array([x0, y0], float), found[1]
-    if raw8 is not None:
-        return _bright_line(_gaussian_blur(raw8, 1.5), mask, noise)
-    return _bright_line(_gaussian_blur(img, 1.5), mask, noise)
+    found = _bright_line(_gaussian_blur(img if raw8 is None else raw8, 1.5), mask, noise)
+    if found is not None:
+        return found
+    # a clipped stripe on a lit board: its clipped core (stripe_clipped.clipped_core_pixels)
+    P = clipped_core_pixels(img if raw8 is None else raw8, mask)
+    line = None if P is None else _pca_line(P, 1.0)
+    return None if line is None or line[2] > BLOB_SPREAD_PX else line[:2]
 
 
 #: Kernel sizes for ``cv2.GaussianBlur`` of uint8 images that give the very result of the
@@ -372,12 +376,17 @@ def stripe_centres(image: np.ndarray, mask: np.ndarray, camera: CameraModel | No
     1. Robust noise level (MAD of pixel differences) and a coarse stripe line
        (PCA of the brightest pixels): its direction decides whether the
        stripe is sampled by columns (|slope| <= 1) or by rows.
-    2. Stripe width from the median profile; per column, a window of a few
-       widths around the predicted centre; background from the window's two
+    2. Stripe width from the median profile (with ``blackness``: of the profiles less
+       their background, the run above half the peak, so a lit square beside the stripe
+       does not widen it); per column, a window of a few widths around the predicted
+       centre; background from the window's two
        outer thirds (a straight line; with ``blackness``, ambient light
        reflected by the squares: ``b0 + b1 * blackness``).
-    3. Centre = iterated symmetric-window centroid (robust to saturation);
-       columns whose peak is below ``min_snr`` noise sigmas are dropped.
+    3. Centre = iterated symmetric-window centroid; a clipped profile's centre is the
+       midpoint of its run above half the smaller headroom of its two flanks
+       (:func:`_saturated_centres`; on a lit board the white squares leave less room
+       below the clip than the black ones), dropped where the albedo changes under that
+       run; columns whose peak is below ``min_snr`` noise sigmas are dropped.
     4. With ``blackness`` (0 on white, 1 on black squares, as seen in the
        bright image; :meth:`lidarcal.board.BoardView.blackness_map`) each
        profile is divided by the stripe's albedo ``1 - (1 - rho) blackness``
@@ -562,7 +571,11 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
     # stripe width from a first look: median FWHM of the profiles
     L0 = min(30, (H - 1) // 2)
     prof, top = _profiles(img, cols, y_pred, L0)
-    width = _fwhm(prof, noise)
+    if blk is not None:  # a lit board: its squares' steps are background, not stripe
+        bprof0 = np.clip(_profiles_at(blk, cols, top, 2 * L0 + 1), 0.0, 1.0)
+        width = fwhm_run(prof - _background(prof, bprof0), noise)
+    else:
+        width = _fwhm(prof, noise)
     L = int(min(max(np.ceil(4 * width) + 6, 10), (H - 1) // 2))
     half = max(1.5 * width, 2.0)
     y_cur = y_pred
@@ -613,7 +626,7 @@ def _centres_by_column(img: np.ndarray, mask: np.ndarray, c0: np.ndarray, slope:
             if rho is None:
                 rho_used = reflectance_ratio([samples])
     n = prof.shape[1]
-    cen = _saturated_centres(prof, s_raw, cen)
+    cen, peak = _saturated_centres(prof, s_raw, cen, peak, bprof, noise)
     yc = top + cen
     ok = np.isfinite(cen) & (peak >= min_snr * noise) & (cen > half) & (cen < n - 1 - half)
     xi, yi = cols[ok], yc[ok]
@@ -644,39 +657,6 @@ def _column_pass(img: np.ndarray, blk: np.ndarray | None, cols: np.ndarray, top:
     s_div = s if divide is None or divide == 1.0 else s / (1.0 - (1.0 - divide) * bprof)
     cen, _ = _window_centroid(s_div, start.astype(float), half)
     return prof, bprof, s, start, peak, cen
-
-
-def _saturated_centres(prof: np.ndarray, s: np.ndarray, cen: np.ndarray) -> np.ndarray:
-    """Centres of clipped profiles: the midpoint of the run above half the peak, its two
-    edges interpolated linearly (sub-pixel) on the unsaturated flanks.
-
-    A profile is clipped when at least 3 samples lie within 1 DN of its maximum and
-    that maximum is ``SATURATED_DN`` or more (a saturated laser core is a flat top).
-    Other profiles keep their centroid ``cen``.
-    """
-    top = _row_max(prof)
-    rows = np.flatnonzero((top >= SATURATED_DN) & np.isfinite(cen))
-    rows = rows[np.count_nonzero(prof[rows] >= top[rows, None] - 1, axis=1) >= 3]  # flat tops
-    out = cen.copy()
-    if rows.size == 0:
-        return out
-    n = s.shape[1]
-    S = s[rows]
-    k = np.clip(np.rint(cen[rows]), 0, n - 1).astype(np.intp)
-    half = 0.5 * S.max(axis=1)
-    r = np.arange(len(rows))
-    idx = np.arange(n)[None, :]
-    below = S < half[:, None]
-    # the run of samples >= half through k: from after the last one below it on the left
-    # to before the first one below it on the right
-    a = np.max(np.where(below & (idx < k[:, None]), idx, -1), axis=1) + 1
-    b = np.min(np.where(below & (idx > k[:, None]), idx, n), axis=1) - 1
-    use = ~below[r, k] & (a > 0) & (b < n - 1)  # an edge outside the window: keep the centroid
-    r, a, b, h = r[use], a[use], b[use], half[use]
-    left = a - (S[r, a] - h) / np.maximum(S[r, a] - S[r, a - 1], 1e-6)
-    right = b + (S[r, b] - h) / np.maximum(S[r, b] - S[r, b + 1], 1e-6)
-    out[rows[use]] = 0.5 * (left + right)
-    return out
 
 
 def _smooth_rows(s: np.ndarray, sigma: float) -> np.ndarray:

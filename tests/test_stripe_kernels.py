@@ -9,6 +9,7 @@ import pytest
 
 from lidarcal import stripe_profile as sp
 from lidarcal.geometry import median
+from lidarcal.laser_colour import SATURATED_DN
 from lidarcal.scan import fit_line_2d
 
 
@@ -49,12 +50,71 @@ def test_window_centroid_is_the_overlap_weighted_centroid(seed) -> None:
     assert np.nanmax(np.abs(got - ref)) < 1e-9
 
 
-def _saturated_reference(prof, s, cen):
+def _saturated_reference(prof, s, cen, peak):
+    out, pk = cen.copy(), peak.copy()
+    n = s.shape[1]
+    for i in range(len(prof)):
+        top = prof[i].max()
+        if top < SATURATED_DN or not np.isfinite(cen[i]):
+            continue
+        flat = prof[i] >= top - 1
+        best, end, run = 0, 0, 0
+        for j in range(n):  # the longest run of flat samples (the first of equal ones)
+            run = run + 1 if flat[j] else 0
+            if run > best:
+                best, end = run, j
+        if best < 3:
+            continue
+        row = s[i]
+        p0, p1 = end - best + 1, end
+        head = min(row[p0], row[p1])
+        h = 0.5 * head
+        a = p0
+        while a > 0 and row[a - 1] >= h:
+            a -= 1
+        b = p1
+        while b < n - 1 and row[b + 1] >= h:
+            b += 1
+        if head <= 0 or a == 0 or b == n - 1:
+            continue
+        left = a - (row[a] - h) / max(row[a] - row[a - 1], 1e-6)
+        right = b + (row[b] - h) / max(row[b] - row[b + 1], 1e-6)
+        out[i] = 0.5 * (left + right)
+        pk[i] = head * np.sqrt(best)
+    return out, pk
+
+
+def test_saturated_centres_match_the_run_definition() -> None:
+    rng = np.random.default_rng(4)
+    j = np.arange(45)
+    c = rng.uniform(5, 40, 200)
+    prof = np.clip(600 * np.exp(-0.5 * ((j - c[:, None]) / 2.0) ** 2) + rng.normal(0, 2, (200, 45)),
+                   0, 255).round()
+    prof[::7] *= 0.3  # unsaturated rows keep their centroid
+    prof[3, 2] = 255.0  # a hot pixel beside a clipped core: not its plateau
+    s = prof - 3.0
+    cen = c + rng.normal(0, 0.3, 200)
+    cen[5] = np.nan
+    peak = s.max(axis=1)
+    got, pk = sp._saturated_centres(prof, s, cen, peak, np.zeros_like(s), noise=2.0)
+    ref, pk_ref = _saturated_reference(prof, s, cen, peak)
+    assert np.array_equal(np.isnan(got), np.isnan(ref))
+    assert np.nanmax(np.abs(got - ref)) < 1e-12 and np.max(np.abs(pk - pk_ref)) < 1e-9
+    assert np.sum(got != cen) > 50  # the clipped rows were re-centred
+    assert np.abs(got - c)[pk > peak].max() < 0.1  # on the truth (to the flanks' interpolation)
+    # without a blackness map: the run through the centroid, the peaks as they were
+    got, pk = sp._saturated_centres(prof, s, cen, peak)
+    ref = _run_reference(prof, s, cen)
+    assert np.array_equal(np.isnan(got), np.isnan(ref)) and np.nanmax(np.abs(got - ref)) < 1e-12
+    assert np.array_equal(pk, peak)
+
+
+def _run_reference(prof, s, cen):
     out = cen.copy()
     n = s.shape[1]
     for i in range(len(prof)):
         top = prof[i].max()
-        if (prof[i] >= top - 1).sum() < 3 or top < sp.SATURATED_DN or not np.isfinite(cen[i]):
+        if (prof[i] >= top - 1).sum() < 3 or top < SATURATED_DN or not np.isfinite(cen[i]):
             continue
         row = s[i]
         k = int(np.clip(np.rint(cen[i]), 0, n - 1))
@@ -73,23 +133,6 @@ def _saturated_reference(prof, s, cen):
         right = b + (row[b] - half) / max(row[b] - row[b + 1], 1e-6)
         out[i] = 0.5 * (left + right)
     return out
-
-
-def test_saturated_centres_match_the_run_definition() -> None:
-    rng = np.random.default_rng(4)
-    j = np.arange(45)
-    c = rng.uniform(5, 40, 200)
-    prof = np.clip(600 * np.exp(-0.5 * ((j - c[:, None]) / 2.0) ** 2) + rng.normal(0, 2, (200, 45)),
-                   0, 255).round()
-    prof[::7] *= 0.3  # unsaturated rows keep their centroid
-    s = prof - 3.0
-    cen = c + rng.normal(0, 0.3, 200)
-    cen[5] = np.nan
-    got = sp._saturated_centres(prof, s, cen)
-    ref = _saturated_reference(prof, s, cen)
-    assert np.array_equal(np.isnan(got), np.isnan(ref))
-    assert np.nanmax(np.abs(got - ref)) < 1e-12
-    assert np.sum(got != cen) > 50  # the clipped rows were re-centred
 
 
 def test_incremental_passes_equal_full_passes(monkeypatch) -> None:
