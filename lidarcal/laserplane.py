@@ -49,6 +49,7 @@ from .laser_colour import (
 )
 from .stripe import stripe_centres
 from .stripe_quality import quality_problem
+from .stripe_steger import steger_stripe
 
 FORMAT = "lidarcal-laser-plane/1"
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
@@ -307,6 +308,8 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         # reaches one is cut on that side
         # (a core is narrower than a quarter of a square: on large photos wider than 15 px)
         core = max(CORE_MAX_PX, 2 * int(side * WIDE_OBJECT_SQUARES / 2) + 1)
+        if core > CORE_MAX_PX:  # a large photo: its saturated core filled up to that width
+            response = laser_response(img, colour, core_max_px=core)
         k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
         clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
                              np.ones((k, k), np.uint8))
@@ -315,6 +318,8 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         response, _ = along_stripe(response, mask.astype(bool), side, edges,
                                    smooth_px=side)
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
+    if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
+        pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info)
     res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
         float(info["fit_rms_px"])
     problem = info.get("problem") if "quality" not in info else quality_problem(info["quality"])
