@@ -40,6 +40,7 @@ from .io.dataset import (
     write_json_atomic,
 )
 from .laser_colour import (
+    _CHANNEL,
     CORE_MAX_PX,
     SATURATED_DN,
     along_stripe,
@@ -319,7 +320,9 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
                                    smooth_px=side)
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
-        pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info)
+        sat = None if img.ndim != 3 or colour not in _CHANNEL else \
+            img[..., _CHANNEL[colour]] >= SATURATED_DN
+        pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info, sat)
     res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
         float(info["fit_rms_px"])
     problem = info.get("problem") if "quality" not in info else quality_problem(info["quality"])

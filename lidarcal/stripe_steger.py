@@ -39,7 +39,8 @@ def hessian_line_points(img: np.ndarray, sigma: float, cand: np.ndarray
     """Steger's line points (eq. 14) at the candidate pixels ``cand`` (N, 2) (x, y ints).
 
     Returns (points (M, 2) sub-pixel x, y; the second directional derivative across the
-    line there, ``-lambda`` > 0 for a bright line; the index into ``cand`` of each point).
+    line there, ``-lambda`` > 0 for a bright line; the index into ``cand`` of each point;
+    the unit normals (M, 2)).
     """
     f = np.asarray(img, np.float32)
     d = {o: ndimage.gaussian_filter(f, sigma, order=o, mode="nearest")
@@ -64,11 +65,12 @@ def hessian_line_points(img: np.ndarray, sigma: float, cand: np.ndarray
     ok &= np.isfinite(t) & (np.abs(t * nx) <= 0.5) & (np.abs(t * ny) <= 0.5)
     idx = np.flatnonzero(ok)
     pts = np.column_stack([xs[idx] + t[idx] * nx[idx], ys[idx] + t[idx] * ny[idx]])
-    return pts, -lam[idx], idx
+    return pts, -lam[idx], idx, n[idx]
 
 
 def steger_centres(response: np.ndarray, mask: np.ndarray, guide_px: np.ndarray,
-                   width_px: float, band_px: float | None = None
+                   width_px: float, band_px: float | None = None,
+                   saturated: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, float]:
     """Steger centres of the stripe near the guide centres ``guide_px`` (N, 2), inside
     ``mask``: (points (M, 2), their strength ``-lambda``, sigma used).
@@ -78,6 +80,11 @@ def steger_centres(response: np.ndarray, mask: np.ndarray, guide_px: np.ndarray,
     the Hessian is computed on the mask's box only. Of the pixels of one column (a stripe
     sampled by columns, |slope| <= 1; else of one row) that hold a line point, the one with
     the strongest ``-lambda`` is kept: one centre per column, as the centroid gives.
+    ``saturated`` (bool, the image's shape): where the laser's channel clips; a point there
+    lies on a filled core (:func:`lidarcal.laser_colour.laser_response`), whose flat top
+    is not a smooth bar: its centre is the midpoint of the run above half the peak along
+    the normal (:func:`half_max_midpoints`), as :mod:`lidarcal.stripe_profile` centres
+    clipped profiles.
     """
     guide = np.asarray(guide_px, float)
     if len(guide) < 2:
@@ -102,8 +109,8 @@ def steger_centres(response: np.ndarray, mask: np.ndarray, guide_px: np.ndarray,
     ys, xs = np.nonzero(near)
     if xs.size == 0:
         return np.empty((0, 2)), np.empty(0), sigma
-    pts, strength, idx = hessian_line_points(response[y0:y1, x0:x1], sigma,
-                                             np.column_stack([xs, ys]))
+    crop = np.asarray(response[y0:y1, x0:x1], np.float32)
+    pts, strength, idx, normals = hessian_line_points(crop, sigma, np.column_stack([xs, ys]))
     if len(pts) == 0:
         return np.empty((0, 2)), np.empty(0), sigma
     key = xs[idx] if by_cols else ys[idx]
@@ -112,11 +119,50 @@ def steger_centres(response: np.ndarray, mask: np.ndarray, guide_px: np.ndarray,
     first = np.ones(len(o), bool)
     first[1:] = key[o][1:] != key[o][:-1]
     keep = o[first]
-    return pts[keep] + [x0, y0], strength[keep], sigma
+    pts, normals = pts[keep], normals[keep]
+    if saturated is not None and len(pts):
+        on = np.asarray(saturated, bool)[y0:y1, x0:x1][ys[idx[keep]], xs[idx[keep]]]
+        if on.any():
+            pts[on] = half_max_midpoints(crop, pts[on], normals[on], 1.5 * max(width_px, 2.0))
+    return pts + [x0, y0], strength[keep], sigma
+
+
+def half_max_midpoints(img: np.ndarray, pts: np.ndarray, normals: np.ndarray,
+                       reach_px: float) -> np.ndarray:
+    """Each point moved along its normal to the midpoint of the run above half the peak
+    (over the lower of the two ends) of the profile through it, sampled every 1/4 px out
+    to ``reach_px`` each way (bilinear, ``cv2.remap``); the two edges interpolated
+    linearly. A point whose run reaches an end keeps its place."""
+    s = np.arange(-reach_px, reach_px + 1e-9, 0.25, dtype=np.float32)
+    X = (pts[:, 0, None] + s[None, :] * normals[:, 0, None]).astype(np.float32)
+    Y = (pts[:, 1, None] + s[None, :] * normals[:, 1, None]).astype(np.float32)
+    prof = cv2.remap(np.asarray(img, np.float32), X, Y, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).astype(float)
+    n = len(s)
+    q = max(n // 8, 1)
+    base = np.minimum(np.median(prof[:, :q], 1), np.median(prof[:, -q:], 1))
+    half = base + 0.5 * (prof.max(1) - base)
+    above = prof >= half[:, None]
+    k0 = n // 2  # s = 0: the Steger point
+    idx = np.arange(n)[None, :]
+    below = ~above
+    a = np.max(np.where(below & (idx < k0), idx, -1), axis=1)       # last below, left
+    b = np.min(np.where(below & (idx > k0), idx, n), axis=1)        # first below, right
+    ok = above[:, k0] & (a >= 0) & (b < n)
+    out = pts.copy()
+    r = np.flatnonzero(ok)
+    a, b, h = a[r], b[r], half[r]
+    P = prof[r]
+    j = np.arange(len(r))
+    left = s[a] + 0.25 * (h - P[j, a]) / np.maximum(P[j, a + 1] - P[j, a], 1e-6)
+    right = s[b - 1] + 0.25 * (P[j, b - 1] - h) / np.maximum(P[j, b - 1] - P[j, b], 1e-6)
+    out[r] = pts[r] + (0.5 * (left + right))[:, None] * normals[r]
+    return out
 
 
 def steger_stripe(response: np.ndarray, mask: np.ndarray, camera, guide_px: np.ndarray,
-                  guide_info: dict) -> tuple[np.ndarray, dict]:
+                  guide_info: dict, saturated: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, dict]:
     """The stripe's centres by :func:`steger_centres` near the centroid centres
     ``guide_px`` of :func:`lidarcal.stripe_profile.stripe_centres` (with its
     ``return_info`` dict ``guide_info``), outliers rejected and judged by the same gates
@@ -136,7 +182,8 @@ def steger_stripe(response: np.ndarray, mask: np.ndarray, camera, guide_px: np.n
     from .stripe_quality import quality_problem, stripe_quality
 
     width = float(guide_info.get("width_px", np.nan))
-    pts, _strength, sigma = steger_centres(response, mask, guide_px, width)
+    pts, _strength, sigma = steger_centres(response, mask, guide_px, width,
+                                           saturated=saturated)
     info = {"width_px": width, "sigma_px": sigma, "noise_dn": guide_info.get("noise_dn")}
     if len(pts) < 5:
         info.update(fit_rms_px=float("nan"), problem="no laser stripe found (Steger)")
