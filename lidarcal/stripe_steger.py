@@ -26,6 +26,16 @@ from scipy import ndimage
 SQRT3 = float(np.sqrt(3.0))
 #: the smallest scale (px): below ~half a pixel the Gaussian's sampled derivatives are poor
 MIN_SIGMA_PX = 0.5
+#: a line point's second derivative across the line must exceed this many times its noise
+#: (:func:`ridge_noise`): the SNR the centroid asks of a profile's peak (``min_snr``)
+MIN_RIDGE_SNR = 8.0
+
+
+def ridge_noise(noise_dn: float, sigma: float) -> float:
+    """The standard deviation of a Gaussian second derivative of scale ``sigma`` (px) of
+    white noise of ``noise_dn``: ``noise_dn sqrt(3 / (16 pi sigma^6))`` (the squared
+    kernel's integral)."""
+    return float(noise_dn) * float(np.sqrt(3.0 / (16.0 * np.pi * sigma ** 6)))
 
 
 def steger_sigma(width_px: float) -> float:
@@ -70,7 +80,7 @@ def hessian_line_points(img: np.ndarray, sigma: float, cand: np.ndarray
 
 def steger_centres(response: np.ndarray, mask: np.ndarray, guide_px: np.ndarray,
                    width_px: float, band_px: float | None = None,
-                   saturated: np.ndarray | None = None
+                   saturated: np.ndarray | None = None, noise_dn: float = 0.0
                    ) -> tuple[np.ndarray, np.ndarray, float]:
     """Steger centres of the stripe near the guide centres ``guide_px`` (N, 2), inside
     ``mask``: (points (M, 2), their strength ``-lambda``, sigma used).
@@ -84,7 +94,8 @@ def steger_centres(response: np.ndarray, mask: np.ndarray, guide_px: np.ndarray,
     lies on a filled core (:func:`lidarcal.laser_colour.laser_response`), whose flat top
     is not a smooth bar: its centre is the midpoint of the run above half the peak along
     the normal (:func:`half_max_midpoints`), as :mod:`lidarcal.stripe_profile` centres
-    clipped profiles.
+    clipped profiles. Points whose ``-lambda`` is below ``MIN_RIDGE_SNR`` times its noise
+    (:func:`ridge_noise` of ``noise_dn``, the image's noise) are not line points.
     """
     guide = np.asarray(guide_px, float)
     if len(guide) < 2:
@@ -111,6 +122,8 @@ def steger_centres(response: np.ndarray, mask: np.ndarray, guide_px: np.ndarray,
         return np.empty((0, 2)), np.empty(0), sigma
     crop = np.asarray(response[y0:y1, x0:x1], np.float32)
     pts, strength, idx, normals = hessian_line_points(crop, sigma, np.column_stack([xs, ys]))
+    strong = strength >= MIN_RIDGE_SNR * ridge_noise(noise_dn, sigma)
+    pts, strength, idx, normals = pts[strong], strength[strong], idx[strong], normals[strong]
     if len(pts) == 0:
         return np.empty((0, 2)), np.empty(0), sigma
     key = xs[idx] if by_cols else ys[idx]
@@ -183,7 +196,8 @@ def steger_stripe(response: np.ndarray, mask: np.ndarray, camera, guide_px: np.n
 
     width = float(guide_info.get("width_px", np.nan))
     pts, _strength, sigma = steger_centres(response, mask, guide_px, width,
-                                           saturated=saturated)
+                                           saturated=saturated,
+                                           noise_dn=guide_info.get("noise_dn") or 0.0)
     info = {"width_px": width, "sigma_px": sigma, "noise_dn": guide_info.get("noise_dn")}
     if len(pts) < 5:
         info.update(fit_rms_px=float("nan"), problem="no laser stripe found (Steger)")
