@@ -2,9 +2,12 @@
 
 The structured-light step: in each lights-on photo the chessboard gives the
 board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
-(section 1.3, :func:`lidarcal.stripe.stripe_centres` on the laser's colour
-response averaged along the stripe, :func:`lidarcal.laser_colour.along_stripe`, kept
-off overexposed areas), their rays meet the board plane (eq. 5) and all the photos' 3D
+(section 1.3: on the laser's colour response averaged along the stripe,
+:func:`lidarcal.laser_colour.along_stripe`, kept off overexposed areas, its saturated
+core filled up to a width scaled with the squares; the centroid centres of
+:func:`lidarcal.stripe.stripe_centres` guide Steger's line detector,
+:func:`lidarcal.stripe_steger.steger_stripe`, whose centres are used), their rays meet
+the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
 chessboard or stripe fails its checks, or whose stripe line lies off the
@@ -13,6 +16,12 @@ bootstrap over the photos used. Real photos: a JPEG tagged with an EXIF rotation
 read in the camera's orientation (:func:`read_photo`), large photos are searched for the
 board reduced, a stray chessboard corner is replaced (:func:`board_view_robust`) and the
 board's fit is judged per focal length (:func:`max_board_rms_px`).
+
+The centres are correlated along the stripe (the response is averaged over a square's
+side along it, and Steger's Gaussian over its scale): ``rms_mm``, the rms distance of the
+used centres' 3D points to the plane, measures their scatter, not an error of independent
+points; the plane's sigma comes from resampling whole photos, which keeps each photo's
+correlated centres together.
 
 Output (``lidarcal-laser-plane/1``): ``normal . X = d_mm`` in the camera frame
 (OpenCV's), ``d_mm >= 0``.
