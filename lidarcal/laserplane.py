@@ -279,6 +279,21 @@ def square_side_and_edges(corners_px: np.ndarray, board: BoardSpec
     return side, ang
 
 
+def _refilled(img: np.ndarray, colour: str, core_px: int, outline_px: np.ndarray,
+              margin: int) -> np.ndarray:
+    """:func:`lidarcal.laser_colour.laser_response` with saturated cores filled up to
+    ``core_px`` wide, computed on the board's box grown by ``margin`` px (the fill and the
+    clipped-area test reach ``core_px``; the along-stripe average a square beyond the
+    board), zero outside it."""
+    H, W = img.shape[:2]
+    x0, y0 = (max(int(np.floor(v)) - margin, 0) for v in outline_px.min(axis=0))
+    x1 = min(int(np.ceil(outline_px[:, 0].max())) + margin + 1, W)
+    y1 = min(int(np.ceil(outline_px[:, 1].max())) + margin + 1, H)
+    out = np.zeros((H, W), np.uint8)
+    out[y0:y1, x0:x1] = laser_response(img[y0:y1, x0:x1], colour, core_max_px=core_px)
+    return out
+
+
 def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
                   laser_colour: str = "auto") -> PhotoResult:
     """Stripe centres and 3D stripe points (eq. 5) of one photo, or its problem."""
@@ -319,7 +334,7 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         # (a core is narrower than a quarter of a square: on large photos wider than 15 px)
         core = max(CORE_MAX_PX, 2 * int(side * WIDE_OBJECT_SQUARES / 2) + 1)
         if core > CORE_MAX_PX:  # a large photo: its saturated core filled up to that width
-            response = laser_response(img, colour, core_max_px=core)
+            response = _refilled(img, colour, core, view.outline_px, core + int(side))
         k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
         clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
                              np.ones((k, k), np.uint8))
