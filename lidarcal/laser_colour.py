@@ -56,7 +56,7 @@ def detect_laser_colour(image: np.ndarray, reference: np.ndarray | None = None) 
 
 
 def laser_response(image: np.ndarray, colour: str = "auto",
-                   reference: np.ndarray | None = None) -> np.ndarray:
+                   reference: np.ndarray | None = None, core_max_px: int = 15) -> np.ndarray:
     """The single-channel uint8 image the stripe is found in (section 1.3, real photos).
 
     ``colour`` (``lidar.laser_colour``): "gray" takes the brightest channel (a dark
@@ -70,6 +70,9 @@ def laser_response(image: np.ndarray, colour: str = "auto",
     image of the same view without the laser (``board.png``); its response is
     subtracted (stripe minus board) when ``image`` is itself lit (its median at least
     half the reference's), removing what the board shows without the laser.
+    ``core_max_px``: the widest saturated core filled (:data:`CORE_MAX_PX`; a large photo's
+    core is wider: :mod:`lidarcal.laserplane` scales it with the board's squares), a
+    clipped area wider than that every way (:func:`clipped_areas`) is not filled.
     """
     img = np.asarray(image)
     if colour not in LASER_COLOURS:
@@ -86,13 +89,15 @@ def laser_response(image: np.ndarray, colour: str = "auto",
         resp = _colour_excess(img, colour)
         sat = img[..., _CHANNEL[colour]] >= SATURATED_DN
         if sat.any():
-            r = 7  # fills cores up to ~15 px wide; far from a stripe saturated squares stay 0
+            r = int(core_max_px) // 2  # fills cores up to core_max_px wide; far from a
+            # stripe saturated squares stay 0
             se = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1,) * 2)
             filled = cv2.dilate(resp, se)
             # a clipped white square (wider than a core every way) is not filled: the laser
             # cannot be seen there, and the fill would copy the stripe on the next black
             # square into it, on one side only
-            resp = np.where(sat & ~clipped_areas(img, colour), np.maximum(resp, filled), resp)
+            resp = np.where(sat & ~clipped_areas(img, colour, core_max_px),
+                            np.maximum(resp, filled), resp)
         ref = None
         if reference is not None and np.ndim(reference) == 3:
             ref = np.clip(_colour_excess(np.asarray(reference), colour), 0, 255)

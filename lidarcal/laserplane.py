@@ -2,9 +2,12 @@
 
 The structured-light step: in each lights-on photo the chessboard gives the
 board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
-(section 1.3, :func:`lidarcal.stripe.stripe_centres` on the laser's colour
-response averaged along the stripe, :func:`lidarcal.laser_colour.along_stripe`, kept
-off overexposed areas), their rays meet the board plane (eq. 5) and all the photos' 3D
+(section 1.3: on the laser's colour response averaged along the stripe,
+:func:`lidarcal.laser_colour.along_stripe`, kept off overexposed areas, its saturated
+core filled up to a width scaled with the squares; the centroid centres of
+:func:`lidarcal.stripe.stripe_centres` guide Steger's line detector,
+:func:`lidarcal.stripe_steger.steger_stripe`, whose centres are used), their rays meet
+the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
 chessboard or stripe fails its checks, or whose stripe line lies off the
@@ -13,6 +16,12 @@ bootstrap over the photos used. Real photos: a JPEG tagged with an EXIF rotation
 read in the camera's orientation (:func:`read_photo`), large photos are searched for the
 board reduced, a stray chessboard corner is replaced (:func:`board_view_robust`) and the
 board's fit is judged per focal length (:func:`max_board_rms_px`).
+
+The centres are correlated along the stripe (the response is averaged over a square's
+side along it, and Steger's Gaussian over its scale): ``rms_mm``, the rms distance of the
+used centres' 3D points to the plane, measures their scatter, not an error of independent
+points; the plane's sigma comes from resampling whole photos, which keeps each photo's
+correlated centres together.
 
 Output (``lidarcal-laser-plane/1``): ``normal . X = d_mm`` in the camera frame
 (OpenCV's), ``d_mm >= 0``.
@@ -40,6 +49,7 @@ from .io.dataset import (
     write_json_atomic,
 )
 from .laser_colour import (
+    _CHANNEL,
     CORE_MAX_PX,
     SATURATED_DN,
     along_stripe,
@@ -49,6 +59,7 @@ from .laser_colour import (
 )
 from .stripe import stripe_centres
 from .stripe_quality import quality_problem
+from .stripe_steger import steger_stripe
 
 FORMAT = "lidarcal-laser-plane/1"
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
@@ -268,6 +279,21 @@ def square_side_and_edges(corners_px: np.ndarray, board: BoardSpec
     return side, ang
 
 
+def _refilled(img: np.ndarray, colour: str, core_px: int, outline_px: np.ndarray,
+              margin: int) -> np.ndarray:
+    """:func:`lidarcal.laser_colour.laser_response` with saturated cores filled up to
+    ``core_px`` wide, computed on the board's box grown by ``margin`` px (the fill and the
+    clipped-area test reach ``core_px``; the along-stripe average a square beyond the
+    board), zero outside it."""
+    H, W = img.shape[:2]
+    x0, y0 = (max(int(np.floor(v)) - margin, 0) for v in outline_px.min(axis=0))
+    x1 = min(int(np.ceil(outline_px[:, 0].max())) + margin + 1, W)
+    y1 = min(int(np.ceil(outline_px[:, 1].max())) + margin + 1, H)
+    out = np.zeros((H, W), np.uint8)
+    out[y0:y1, x0:x1] = laser_response(img[y0:y1, x0:x1], colour, core_max_px=core_px)
+    return out
+
+
 def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
                   laser_colour: str = "auto") -> PhotoResult:
     """Stripe centres and 3D stripe points (eq. 5) of one photo, or its problem."""
@@ -307,6 +333,8 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         # reaches one is cut on that side
         # (a core is narrower than a quarter of a square: on large photos wider than 15 px)
         core = max(CORE_MAX_PX, 2 * int(side * WIDE_OBJECT_SQUARES / 2) + 1)
+        if core > CORE_MAX_PX:  # a large photo: its saturated core filled up to that width
+            response = _refilled(img, colour, core, view.outline_px, core + int(side))
         k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
         clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
                              np.ones((k, k), np.uint8))
@@ -315,6 +343,10 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         response, _ = along_stripe(response, mask.astype(bool), side, edges,
                                    smooth_px=side)
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
+    if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
+        sat = None if img.ndim != 3 or colour not in _CHANNEL else \
+            img[..., _CHANNEL[colour]] >= SATURATED_DN
+        pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info, sat)
     res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
         float(info["fit_rms_px"])
     problem = info.get("problem") if "quality" not in info else quality_problem(info["quality"])

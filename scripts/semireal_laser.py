@@ -5,7 +5,8 @@ plane error against the truth (deg, mm), rms, photos used, CPU seconds; one line
 
 KIND: a key of lidarcal.synthetic.semireal.KINDS (default: all), or simN / simjpegN: the
 rendered photos of lidarcal.synthetic.laserphotos (seed N; 14 photos, one where the laser
-misses the board, one overexposed).
+misses the board, one overexposed). ``sigma``: the bootstrap sigma of the normal and of
+``d`` that `lidarcal laser-plane` reports, beside the true error of ``d``.
 """
 
 from __future__ import annotations
@@ -55,8 +56,10 @@ def main(out: Path, kinds: list[str], verbose: bool = False) -> None:
         used = [p for p in r.photos if p.used]
         cen = np.vstack([p.points_mm for p in used]).mean(0)
         off = abs(n @ cen - d)
+        dd = abs(r.plane.d - d * np.sign(r.plane.normal @ n))
         print(f"{kind:9s} {ang:.3f} deg {off:.3f} mm rms {r.rms_mm:.3f} mm used "
-              f"{len(used)}/{len(r.photos)} cpu {cpu:.1f} s maxrss "
+              f"{len(used)}/{len(r.photos)} sigma {r.sigma_normal_deg:.3f} deg "
+              f"{r.sigma_d_mm:.3f} mm (|d error| {dd:.3f} mm) cpu {cpu:.1f} s maxrss "
               f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB "
               f"(before {m0 / 1024:.0f})", flush=True)
         truth = Plane.from_normal_point(n, n * d)
