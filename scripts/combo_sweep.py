@@ -232,6 +232,19 @@ def _simulate(work: Path, c: Combo, seed: int) -> Path:
     return ds
 
 
+def _truth_for_import(folder: Path, imported: Path) -> None:
+    """truth.json of the recorded folder, its poses re-indexed as ``lidarcal import`` numbered
+    the positions (in recording order: each imported row gets the truth pose of the nearest
+    psi_deg)."""
+    truth = json.loads((folder / "truth.json").read_text())
+    rows = [ln.split(",") for ln in (imported / "positions.csv").read_text().splitlines()[1:]]
+    poses = []
+    for r in rows:
+        best = min(truth["poses"], key=lambda p: abs((p["psi_deg"] - float(r[1]) + 180.0) % 360.0 - 180.0))
+        poses.append({**best, "index": int(r[0])})
+    (imported / "truth.json").write_text(json.dumps({**truth, "poses": poses}))
+
+
 def _routine(w: str) -> bool:
     """Warnings every dataset of a short sweep carries (they do not flag a doubtful result)."""
     return "span only" in w
@@ -277,7 +290,7 @@ def run_combo(name: str, parts: tuple[str, ...], work: Path, seed: int, position
         if p.returncode != 0:
             row["outcome"], row["note"] = _failure(p)
             return row
-        shutil.copy(data / "truth.json", ds / "imported" / "truth.json")
+        _truth_for_import(data, ds / "imported")
         data = ds / "imported"
     chk = _lidarcal("check", str(data), "--sheet", str(ds / "check.png"))
     row["check"] = chk.returncode
