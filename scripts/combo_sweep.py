@@ -113,6 +113,9 @@ HAND: dict[str, tuple[str, ...]] = {
     "disc_far_quantum_lit": ("L:disc_far", "L:quantum10", "C:lit60", "R:cam_photos"),
     "firstecho_div_small": ("L:firstecho", "L:divergence", "R:v_sq15"),
     "pp_off_occl_drop": ("R:cam_pp_off", "C:occl0.6", "L:drop20", "L:offset-30"),
+    # the parts of bag_png_fov270_wrap (SILENT) one removed at a time
+    "wide_enc": ("R:wide", "L:encoder0.02"),
+    "wide_fov270yaw_enc": ("R:wide", "L:fov270_yaw90", "L:encoder0.02"),
 }
 
 
