@@ -116,6 +116,7 @@ HAND: dict[str, tuple[str, ...]] = {
     # the parts of bag_png_fov270_wrap (SILENT) one removed at a time
     "wide_enc": ("R:wide", "L:encoder0.02"),
     "wide_fov270yaw_enc": ("R:wide", "L:fov270_yaw90", "L:encoder0.02"),
+    "paper_fov270yaw_enc": ("L:fov270_yaw90", "L:encoder0.02"),
 }
 
 
