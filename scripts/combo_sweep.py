@@ -59,6 +59,7 @@ import capture_sweep as cs  # noqa: E402
 import lidar_sweep as ls  # noqa: E402
 import rig_sweep as rs  # noqa: E402
 
+from lidarcal.io.dataset import DatasetError  # noqa: E402
 from lidarcal.synthetic import simulate  # noqa: E402
 from lidarcal.synthetic.config import PAPER, WIDE, RigConfig  # noqa: E402
 
@@ -287,7 +288,11 @@ def run_combo(name: str, parts: tuple[str, ...], work: Path, seed: int, position
         bag = ds / "rec.bag"
         kw = ({"images": "raw", "single_camera_topic": True} if c.bag == "lit"
               else {"images": c.bag})
-        write_bag(data, bag, storage="rosbag1", seed=seed, sweeps=c.sweeps, rig_json=ds / "rig.json", **kw)
+        try:
+            write_bag(data, bag, storage="rosbag1", seed=seed, sweeps=c.sweeps, rig_json=ds / "rig.json",
+                      **kw)
+        except DatasetError as exc:  # the folder itself is refused (as calibrate would refuse it)
+            return {**row, "outcome": "refused", "note": f"recording the bag: error: {exc}"[:200]}
         p = _lidarcal("import", str(bag), "--rig", str(ds / "rig.json"), "--out", str(ds / "imported"),
                       "--no-progress")
         row["import"] = p.returncode
