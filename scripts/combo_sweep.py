@@ -24,9 +24,10 @@ the worst error/sigma ratio) and classifies the outcome:
 - ``good``: exit 0, every position within 2 sigma (or the worst within 3 sigma and the
   mean centre error below 1 mm);
 - ``refused``: exit 2 with one ``error: FILE: ...`` line (an honest refusal);
-- ``warned``: exit 0, errors beyond that, but calibration.json carries a warning beyond the
-  routine ones (judge the text: it must say the result is doubtful);
-- ``SILENT``: exit 0, errors beyond 3 sigma or the mean centre error above 3 mm, no warning;
+- ``warned``: exit 0, errors beyond that, but calibration.json carries a warning saying the
+  result or its sigmas are doubtful (:func:`doubting`; judge the text);
+- ``SILENT``: exit 0, errors beyond 3 sigma or the mean centre error above 3 mm, no such
+  warning (``good-ish``: beyond 2 sigma, within those bounds);
 - ``CRASH``: any other exit status, a traceback, or exit 2 without the one-line form.
 
 usage::
@@ -255,12 +256,23 @@ def _routine(w: str) -> bool:
     return "span only" in w
 
 
+# words of a warning that says the result itself is doubtful (a skipped position or a blur
+# note does not: it says what was done about the input)
+_DOUBT = ("sigma", "understate", "doubtful", "off by", "not told apart", "poorly determined",
+          "not determined", "weak")
+
+
+def doubting(warning: str) -> bool:
+    """Whether ``warning`` says the calibration's result (or its sigmas) may be wrong."""
+    return any(k in warning for k in _DOUBT)
+
+
 def classify(row: dict) -> str:
     """good / warned / SILENT of a calibrate that exited 0 (see the module docstring)."""
     ok = row["cov2s"] >= 1.0 or (row["worst_ratio"] <= 3.0 and row["centre_mm"] < 1.0)
     if ok:
         return "good"
-    if row["n_warn"] > 0:
+    if row["n_doubt"] > 0:
         return "warned"
     if row["worst_ratio"] > 3.0 or row["centre_mm"] > 3.0:
         return "SILENT"
@@ -318,8 +330,9 @@ def run_combo(name: str, parts: tuple[str, ...], work: Path, seed: int, position
     row.update({k: ev[k] for k in ("used", "skipped", "centre_mm", "centre_max_mm", "z_deg", "x_deg",
                                    "cov2s", "worst_ratio")})
     row["n_warn"] = len(warns)
+    row["n_doubt"] = sum(doubting(w) for w in warns)
     row["outcome"] = classify(row)
-    row["note"] = warns[0][:200] if warns else ""
+    row["note"] = next((w for w in warns if doubting(w)), warns[0] if warns else "")[:200]
     if c.sweeps:
         m = _lidarcal("measure", str(data), "--calibration", str(out / "calibration.json"),
                       "--out", str(out))
@@ -334,7 +347,7 @@ def run_combo(name: str, parts: tuple[str, ...], work: Path, seed: int, position
     return row
 
 
-COLUMNS = ("combo", "outcome", "check", "cal", "used", "skipped", "n_warn", "centre_mm", "centre_max_mm",
+COLUMNS = ("combo", "outcome", "check", "cal", "used", "skipped", "n_warn", "n_doubt", "centre_mm", "centre_max_mm",
            "z_deg", "x_deg", "cov2s", "worst_ratio", "meas", "meas_abs_mm", "meas_in2s", "note")
 
 

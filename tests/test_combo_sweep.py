@@ -68,14 +68,24 @@ def test_truth_of_an_import_follows_its_numbering(tmp_path):
 
 
 @pytest.mark.parametrize(("row", "want"), [
-    ({"cov2s": 1.0, "worst_ratio": 1.5, "centre_mm": 0.2, "n_warn": 0}, "good"),
-    ({"cov2s": 0.9, "worst_ratio": 2.5, "centre_mm": 0.2, "n_warn": 0}, "good"),
-    ({"cov2s": 0.75, "worst_ratio": 5.1, "centre_mm": 0.13, "n_warn": 0}, "SILENT"),
-    ({"cov2s": 0.2, "worst_ratio": 2.8, "centre_mm": 4.6, "n_warn": 0}, "SILENT"),
-    ({"cov2s": 0.75, "worst_ratio": 5.1, "centre_mm": 0.13, "n_warn": 1}, "warned"),
+    ({"cov2s": 1.0, "worst_ratio": 1.5, "centre_mm": 0.2, "n_doubt": 0}, "good"),
+    ({"cov2s": 0.9, "worst_ratio": 2.5, "centre_mm": 0.2, "n_doubt": 0}, "good"),
+    ({"cov2s": 0.75, "worst_ratio": 5.1, "centre_mm": 0.13, "n_doubt": 0}, "SILENT"),
+    ({"cov2s": 0.2, "worst_ratio": 2.8, "centre_mm": 4.6, "n_doubt": 0}, "SILENT"),
+    ({"cov2s": 0.75, "worst_ratio": 5.1, "centre_mm": 0.13, "n_doubt": 1}, "warned"),
+    ({"cov2s": 0.5, "worst_ratio": 2.5, "centre_mm": 1.5, "n_doubt": 0}, "good-ish"),
 ])
 def test_outcome_classes(row, want):
     assert cs.classify(row) == want
+
+
+def test_a_skip_or_blur_note_is_no_warning_about_the_result():
+    assert not cs.doubting("/x/stripes: the stripe images are blurrier than board.png (an extra "
+                           "Gaussian of 2.0 px); the squares' albedo map is blurred to match")
+    assert not cs.doubting("/x/stripes/0003.png: board 1: only 52 % of the stripe centres lie on "
+                           "one curve (need 60 %); position 3 skipped (--strict stops instead)")
+    assert cs.doubting("the joint fit's LiDAR centre is 7.05 mm (4.3 sigma) from the rigid fit's "
+                       "at position 11: the joint sigmas understate its error here")
 
 
 def test_one_line_refusal_and_traceback():
