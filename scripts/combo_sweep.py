@@ -56,13 +56,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import capture_sweep as cs  # noqa: E402
-import lidar_sweep as ls  # noqa: E402
-import rig_sweep as rs  # noqa: E402
+import capture_sweep as cs
+import lidar_sweep as ls
+import rig_sweep as rs
 
-from lidarcal.io.dataset import DatasetError  # noqa: E402
-from lidarcal.synthetic import simulate  # noqa: E402
-from lidarcal.synthetic.config import PAPER, WIDE, RigConfig  # noqa: E402
+from lidarcal.io.dataset import DatasetError
+from lidarcal.synthetic import simulate
+from lidarcal.synthetic.config import PAPER, WIDE, RigConfig
 
 LIDAR = {v.name: v for v in ls.variants()}
 CAPTURE = {c.name: c for c in cs.cases()}

@@ -12,7 +12,7 @@ import pytest
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 sys.path.insert(0, str(SCRIPTS))
-import combo_sweep as cs  # noqa: E402
+import combo_sweep as cs
 
 
 def test_build_combines_the_sweeps_parts():

@@ -442,10 +442,10 @@ def jitter_offset_warnings(noise: dict, jitter_deg: float) -> list[str]:
                 for b in range(2))
     if ratio <= JITTER_OFFSET_RATIO:
         return []
-    return [f"the turntable's encoder jitter ({jitter_deg:.4f} deg) is not told apart from the "
-            f"stripes' offsets (still {ratio:.0f}x the stripes' pixel noise after the angle "
-            "corrections): each position's corrected angle, so its pose's z/x axes, may be off by "
-            "several sigma; use a turntable with a repeatable encoder, or more positions"]
+    return [(f"the turntable's encoder jitter ({jitter_deg:.4f} deg) is not told apart from the "
+             f"stripes' offsets (still {ratio:.0f}x the stripes' pixel noise after the angle "
+             "corrections): each position's corrected angle, so its pose's z/x axes, may be off by "
+             "several sigma; use a turntable with a repeatable encoder, or more positions")]
 
 
 def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None = None) -> list[str]:
