@@ -19,6 +19,7 @@ from .params import (
     CORNER_FLOOR_PX,
     F_SCALE,
     JITTER_LR,
+    JITTER_OFFSET_RATIO,
     MIN_POINTS_PER_BOARD,
     N_BOARD,
     N_RIG,
@@ -247,6 +248,7 @@ def fit_joint_data(data: JointData, starts: list, *, fit_planes: bool = False,
     jitter_deg = float(jit["sigma_deg"]) if applied else 0.0
     model = JointModel(axis, psi_ref, base.R, base.T, cov, noise)
     warn = joint_warnings(data, model, null)
+    warn += jitter_offset_warnings(noise, jitter_deg)
     shift_chi2 = None
     if fit_planes:
         shift_chi2, w = _plane_shift(data, plane_prior, bR, bT, corner_floor_px)
@@ -420,6 +422,30 @@ def _ranging_model(rv: np.ndarray, sig: np.ndarray, n_rng: int, prior: RangingPr
 
 
 MIN_COVERAGE = 0.7  # scan span / stripe span below this: fragments of a board
+
+
+def jitter_offset_warnings(noise: dict, jitter_deg: float) -> list[str]:
+    """A warning when the encoder jitter found is not told apart from the stripes' offsets (beyond the paper).
+
+    A turntable angle error shifts a position's whole stripe, as a stripe offset
+    (:class:`lidarcal.joint.noise._Groups`) does. When the angle corrections
+    (:func:`lidarcal.joint.angle_jitter`) are right, the offsets left are the stripes' own
+    (on rendered rigs below the white noise); offsets still above ``JITTER_OFFSET_RATIO``
+    times the stripes' white noise (``noise`` as :attr:`JointModel.noise`) mean the two
+    share the signal and the corrected angles, so the poses' axis sigmas, are doubtful
+    (wide rig, 0.02 deg jitter, 270-deg LiDAR yawed 90 deg: offsets 18x the white noise, a
+    correction 0.07 deg the wrong way, a z axis 5 sigma off, and no warning before).
+    """
+    if jitter_deg <= 0.0:
+        return []
+    ratio = max(noise.get(f"stripe{b}_offset_px", 0.0) / max(noise.get(f"stripe{b}_px", 0.0), 1e-12)
+                for b in range(2))
+    if ratio <= JITTER_OFFSET_RATIO:
+        return []
+    return [(f"the turntable's encoder jitter ({jitter_deg:.4f} deg) is not told apart from the "
+             f"stripes' offsets (still {ratio:.0f}x the stripes' pixel noise after the angle "
+             "corrections): each position's corrected angle, so its pose's z/x axes, may be off by "
+             "several sigma; use a turntable with a repeatable encoder, or more positions")]
 
 
 def joint_warnings(data: JointData, model: JointModel, null: np.ndarray | None = None) -> list[str]:

@@ -20,6 +20,10 @@ REJECT_SIGMAS = 5.0  # residuals beyond this many (whitened) sigmas are dropped 
 CORNER_FLOOR_PX = 0.1  # chessboard corner accuracy assumed for the board planes' uncertainty
 JITTER_LR = 25.0  # encoder jitter is modelled when its likelihood ratio exceeds this (~5 sigma)
 MIN_POINTS_PER_BOARD = 8
+# stripe offsets left after the jitter corrections, in the stripes' white noise, above which the
+# jitter is not told apart from the offsets (measured: 14-18 on wide rigs with 0.02 deg
+# jitter, poses' z axes up to 5 sigma off; 0.1 on the harsh preset's 0.003 deg, within 2 sigma)
+JITTER_OFFSET_RATIO = 5.0
 # central-difference steps: rotations / directions (rad), translations (mm)
 _STEPS = np.array([1e-6] * 2 + [1e-3] * 2 + [1e-6] * 3 + [1e-3] * 3 + ([1e-6] * 3 + [1e-3] * 3) * 2)
 

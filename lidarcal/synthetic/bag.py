@@ -96,12 +96,18 @@ def _header(ts, t: float, ros1: bool, frame: str):
 
 def _image_msg(ts, hdr, img: np.ndarray, images: str):
     if images == "raw":
-        enc = "mono8" if img.ndim == 2 else "bgr8"
+        # the folder's PNG as it is: 16-bit gray as mono16 (little-endian bytes), 16-bit colour
+        # as its top 8 bits, BGRA as bgra8 (a 16-bit or 4-channel PNG crashed the serializer)
+        ch = 1 if img.ndim == 2 else img.shape[2]
+        if img.dtype == np.uint16 and ch > 1:
+            img = (img >> 8).astype(np.uint8)
+        wide = img.dtype == np.uint16
+        enc = {1: "mono16" if wide else "mono8", 3: "bgr8", 4: "bgra8"}[ch]
         h, w = img.shape[:2]
-        ch = 1 if img.ndim == 2 else 3
+        data = np.ascontiguousarray(img.astype("<u2") if wide else img).view(np.uint8).reshape(-1)
         return ts.types["sensor_msgs/msg/Image"](
-            header=hdr, height=h, width=w, encoding=enc, is_bigendian=0, step=w * ch,
-            data=np.ascontiguousarray(img).reshape(-1))
+            header=hdr, height=h, width=w, encoding=enc, is_bigendian=0,
+            step=w * ch * (2 if wide else 1), data=data)
     ext = ".png" if images == "png" else ".jpg"
     ok, buf = cv2.imencode(ext, img, [cv2.IMWRITE_PNG_COMPRESSION, 1] if images == "png"
                            else [cv2.IMWRITE_JPEG_QUALITY, 95])
