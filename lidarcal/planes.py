@@ -47,11 +47,16 @@ from scipy.spatial.transform import Rotation
 
 from .degeneracy import (
     MIN_VIEWS,
+    AMBIGUITY_CHI2,
     PARALLEL_LIMIT,
     UNDETERMINED_MM,
     Uncertainty,
+    describe_ambiguity,
     describe_degeneracy,
+    is_distinct,
+    pose_difference,
     pose_uncertainty,
+    restart_poses,
     unobservable_directions,
     view_level_chi2,
 )
@@ -696,7 +701,30 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
         for k, v in enumerate(views):
             if used[k]:
                 rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
-    chi2, dof = view_level_chi2([v for v, u in zip(views, used) if u], R, T)
+    uv = [v for v, u in zip(views, used) if u]
+    second: list[np.ndarray] = []
+    if not held:  # restarts: a better valley (adopted), or an equally good one far away (named)
+        best, others, dof = _other_minima(uv, ref, lever)
+        if best[1] is not ref:
+            warnings.append(f"the refinement from the linear start stopped in a local minimum "
+                            f"(view-level chi2 {others[0][0]:.1f}); a restart found one with "
+                            f"{best[0]:.1f}, used")
+            gate = {id(v): t for v, t in zip(sub, tot)}
+            for v in uv:
+                v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, best[1].R,
+                                            best[1].T, 4.0 * gate[id(v)], v.beams)
+            ref = refine_extrinsics([v for v in uv if len(v.beams) >= MIN_POINTS], best[1].R,
+                                    best[1].T)
+            R, T = ref.R, ref.T
+            for k, v in enumerate(views):
+                if used[k]:
+                    rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
+        for c2, r in others:
+            if c2 - best[0] < AMBIGUITY_CHI2 * max(1.0, best[0] / max(dof, 1)):
+                d6 = pose_difference(r.R, r.T, R, T)
+                second.append(d6)
+                warnings.append(describe_ambiguity(d6, best[0], c2, dof, lever))
+    chi2, dof = view_level_chi2(uv, R, T)
     if dof > 0:
         birge = float(np.sqrt(max(1.0, chi2 / dof)))
         if birge > ref.noise_scale:
@@ -709,9 +737,34 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     else:
         warnings.append(f"{sum(used)} views fix the six pose parameters exactly: nothing checks "
                         "them; add views")
-    unc = pose_uncertainty(ref.information, ref.noise_scale, lever, limit_mm, held)
+    unc = pose_uncertainty(ref.information, ref.noise_scale, lever, limit_mm, held + second)
     warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
     return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)
+
+
+def _other_minima(views: list[ViewData], ref: Refined, lever_mm: float):
+    """Multi-start check of the refinement: restarts from the pose turned by +-30 deg about each
+    LiDAR axis (:func:`lidarcal.degeneracy.restart_poses`), each refined and scored by the
+    view-level chi-square (:func:`lidarcal.degeneracy.view_level_chi2`). Returns the best
+    ``(chi2, Refined)``, the other distinct minima found (each more than 3 sigma of the best from
+    every other; the start's own minimum first when a restart beat it) and the dof."""
+    chi2 = lambda r: view_level_chi2(views, r.R, r.T)[0]  # noqa: E731
+    _, dof = view_level_chi2(views, ref.R, ref.T)
+    X = np.vstack([np.column_stack([v.points_mm, np.zeros(len(v.beams))]) for v in views])
+    centre = (X @ ref.R.T + ref.T).mean(0)
+    found = [(chi2(ref), ref)]
+    cov = pose_uncertainty(ref.information, max(ref.noise_scale, np.sqrt(max(
+        1.0, found[0][0] / max(dof, 1)))), lever_mm, float("inf")).covariance
+    for Rs, Ts in restart_poses(ref.R, ref.T, centre):
+        r = refine_extrinsics(views, Rs, Ts)
+        if any(not is_distinct(pose_difference(r.R, r.T, f.R, f.T), cov) for _, f in found):
+            continue
+        r = refine_extrinsics(views, r.R, r.T)  # anchored at its own minimum (the weak prior)
+        if all(is_distinct(pose_difference(r.R, r.T, f.R, f.T), cov) for _, f in found):
+            found.append((chi2(r), r))
+    best = min(found, key=lambda f: f[0])
+    others = [f for f in found if f is not best]
+    return best, others, dof
 
 
 def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
