@@ -46,22 +46,21 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .degeneracy import (
-    MIN_VIEWS,
     AMBIGUITY_CHI2,
+    MIN_VIEWS,
     PARALLEL_LIMIT,
     UNDETERMINED_MM,
     Uncertainty,
     describe_ambiguity,
     describe_degeneracy,
-    is_distinct,
     pose_difference,
     pose_uncertainty,
-    restart_poses,
     unobservable_directions,
     view_level_chi2,
 )
 from .geometry import Plane, nearest_rotation, plane_basis
 from .io.dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
+from .planes_checks import FLAT_STEP, direction_words, flat_valley, other_minima
 from .scan import scan_points
 from .scan_segments import MIN_POINTS, LineSegment, line_segments, local_line_noise
 
@@ -704,7 +703,7 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     uv = [v for v, u in zip(views, used) if u]
     second: list[np.ndarray] = []
     if not held:  # restarts: a better valley (adopted), or an equally good one far away (named)
-        best, others, dof = _other_minima(uv, ref, lever)
+        best, others, dof = other_minima(uv, ref, lever, refine_extrinsics)
         if best[1] is not ref:
             warnings.append(f"the refinement from the linear start stopped in a local minimum "
                             f"(view-level chi2 {others[0][0]:.1f}); a restart found one with "
@@ -737,34 +736,19 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     else:
         warnings.append(f"{sum(used)} views fix the six pose parameters exactly: nothing checks "
                         "them; add views")
+    if not held and not second:
+        flat = flat_valley(uv, ref, lever, refine_extrinsics)
+        if flat is not None:
+            second.append(flat[0])
+            warnings.append(f"the fit's valley is far flatter than its curvature says along "
+                            f"{direction_words(flat[0])}: {FLAT_STEP:.0f} sigma along it the "
+                            f"cost rises by {100 * flat[1]:.0f} % of the quadratic prediction, so "
+                            "the pose is undetermined along it and its sigma is null there (boards "
+                            "nearly perpendicular to the scan plane); add views with the board "
+                            "tilted forwards/backwards against the scan plane")
     unc = pose_uncertainty(ref.information, ref.noise_scale, lever, limit_mm, held + second)
     warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
     return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)
-
-
-def _other_minima(views: list[ViewData], ref: Refined, lever_mm: float):
-    """Multi-start check of the refinement: restarts from the pose turned by +-30 deg about each
-    LiDAR axis (:func:`lidarcal.degeneracy.restart_poses`), each refined and scored by the
-    view-level chi-square (:func:`lidarcal.degeneracy.view_level_chi2`). Returns the best
-    ``(chi2, Refined)``, the other distinct minima found (each more than 3 sigma of the best from
-    every other; the start's own minimum first when a restart beat it) and the dof."""
-    chi2 = lambda r: view_level_chi2(views, r.R, r.T)[0]  # noqa: E731
-    _, dof = view_level_chi2(views, ref.R, ref.T)
-    X = np.vstack([np.column_stack([v.points_mm, np.zeros(len(v.beams))]) for v in views])
-    centre = (X @ ref.R.T + ref.T).mean(0)
-    found = [(chi2(ref), ref)]
-    cov = pose_uncertainty(ref.information, max(ref.noise_scale, np.sqrt(max(
-        1.0, found[0][0] / max(dof, 1)))), lever_mm, float("inf")).covariance
-    for Rs, Ts in restart_poses(ref.R, ref.T, centre):
-        r = refine_extrinsics(views, Rs, Ts)
-        if any(not is_distinct(pose_difference(r.R, r.T, f.R, f.T), cov) for _, f in found):
-            continue
-        r = refine_extrinsics(views, r.R, r.T)  # anchored at its own minimum (the weak prior)
-        if all(is_distinct(pose_difference(r.R, r.T, f.R, f.T), cov) for _, f in found):
-            found.append((chi2(r), r))
-    best = min(found, key=lambda f: f[0])
-    others = [f for f in found if f is not best]
-    return best, others, dof
 
 
 def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,

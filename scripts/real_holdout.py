@@ -8,7 +8,7 @@ RMS of the all-views fit (issue 13's acceptance: held-out <= 6 mm and <= 1.25x i
 the training pose's distance from the all-views pose in the training fit's own sigmas (does the
 sigma cover the leave-out error?) and whether the training fit named an undetermined direction.
 
-    .venv/bin/python scripts/real_holdout.py [DIR] [--out 2] [--max-out 3] [--csv FILE]
+    .venv/bin/python scripts/real_holdout.py [DIR] [--min-out 1] [--max-out 3] [--csv FILE]
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from scipy.spatial.transform import Rotation
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lidarcal.io.dataset import DatasetError  # noqa: E402
-from lidarcal.io.pairs import board_spec, read_view_pairs  # noqa: E402
-from lidarcal.planes import calibrate_planes, plane_residuals_mm, prepare_views  # noqa: E402
+from lidarcal.io.dataset import DatasetError
+from lidarcal.io.pairs import board_spec, read_view_pairs
+from lidarcal.planes import calibrate_planes, plane_residuals_mm, prepare_views
 
 
 def holdout_table(views, full, max_out: int = 3, min_out: int = 1, seed: int = 0) -> list[dict]:
@@ -73,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("folder", nargs="?", default=str(REPO / "data" / "real_tapas"))
     ap.add_argument("--camera", default=None, help="camera.json (default: FOLDER/camera.json)")
     ap.add_argument("--max-out", type=int, default=3)
+    ap.add_argument("--min-out", type=int, default=1)
     ap.add_argument("--csv", default=None)
     a = ap.parse_args(argv)
     from lidarcal.io.dataset import parse_camera, read_json_object
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     views = full.views
     print(f"all {len(views)} views: in-sample point-to-plane RMS {full.total_rms_mm:.2f} mm "
           f"(per view {', '.join(f'{x:.2f}' for x in full.rms_mm)})")
-    rows = holdout_table(views, full, a.max_out)
+    rows = holdout_table(views, full, a.max_out, a.min_out)
     print(f"{'held out':10s} {'RMS mm':>7s} {'same,7':>7s} {'ratio':>6s} {'|dT| mm':>8s} "
           f"{'drot deg':>8s} {'mahal':>6s} {'undet':>5s} {'warned':>6s}")
     for r in rows:
@@ -94,8 +95,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r['held_out']:10s} error: {r['error']}")
             continue
         print(f"{r['held_out']:10s} {r['rms']:7.2f} {r['in_sample_same']:7.2f} {r['ratio']:6.2f} "
-              f"{r['dT']:8.1f} {r['drot_deg']:8.2f} {r['mahal']:6.1f} {str(r['undetermined']):>5s} "
-              f"{str(r['warned']):>6s}")
+              f"{r['dT']:8.1f} {r['drot_deg']:8.2f} {r['mahal']:6.1f} {r['undetermined']!s:>5s} "
+              f"{r['warned']!s:>6s}")
     for k in sorted({r["k"] for r in rows}):
         ok = [r for r in rows if r["k"] == k and "error" not in r]
         det = [r for r in ok if not r["undetermined"]]
