@@ -185,9 +185,8 @@ def view_level_chi2(views: list, R: np.ndarray, T: np.ndarray) -> tuple[float, i
 #: another valley). On the real TAPAS views, subsets whose boards are all within ~20 deg of
 #: perpendicular to the scan plane have a second valley ~20 deg and 100-200 mm away.
 RESTART_DEG = 30.0
-#: A second minimum is as good as the best when its view-level chi-square exceeds the best's by
-#: less than this many reduced chi-squares (the Birge ratio squared; 4 = two sigma of one
-#: parameter).
+#: A second minimum is as good as the best when its robust chi-square exceeds the best's by
+#: less than this many squared noise scales (4 = two sigma of one parameter).
 AMBIGUITY_CHI2 = 4.0
 #: ... and distinct when it lies more than this many sigmas (Mahalanobis, the best fit's
 #: covariance) from the best.
@@ -223,15 +222,16 @@ def is_distinct(diff6: np.ndarray, covariance: np.ndarray, sigmas: float = DISTI
     return bool(np.sqrt(max(float(diff6 @ P @ diff6), 0.0)) > sigmas)
 
 
-def describe_ambiguity(diff6: np.ndarray, chi2_best: float, chi2_other: float, dof: int,
+def describe_ambiguity(diff6: np.ndarray, chi2_best: float, chi2_other: float, scale: float,
                        lever_mm: float) -> str:
     """Words for a second minimum (a pose ``diff6`` away, :func:`pose_difference`) that fits the
-    views about as well as the best."""
+    views about as well as the best (robust chi-squares, noise scale ``scale``)."""
     w, t = diff6[:3], diff6[3:]
     ang = float(np.degrees(np.linalg.norm(w)))
     ax = w / max(np.linalg.norm(w), 1e-12)
-    return (f"a second pose fits the views about as well (view-level chi2 {chi2_other:.1f} against "
-            f"{chi2_best:.1f} for {dof} degrees of freedom): {ang:.1f} deg about camera-frame "
+    return (f"a second pose fits the views about as well (robust chi-square {chi2_other:.0f} "
+            f"against {chi2_best:.0f}, within {AMBIGUITY_CHI2:.0f} x the noise scale {scale:.1f} "
+            f"squared): {ang:.1f} deg about camera-frame "
             f"[{ax[0]:.3f}, {ax[1]:.3f}, {ax[2]:.3f}] and {np.linalg.norm(t):.0f} mm away "
             f"({ang * np.pi / 180 * lever_mm + np.linalg.norm(t):.0f} mm at the boards); the pose "
             "is undetermined along that difference and its sigma is null there; add views with "

@@ -703,11 +703,11 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     uv = [v for v, u in zip(views, used) if u]
     second: list[np.ndarray] = []
     if not held:  # restarts: a better valley (adopted), or an equally good one far away (named)
-        best, others, dof = other_minima(uv, ref, lever, refine_extrinsics)
+        best, others, scale = other_minima(uv, ref, lever, refine_extrinsics)
         if best[1] is not ref:
             warnings.append(f"the refinement from the linear start stopped in a local minimum "
-                            f"(view-level chi2 {others[0][0]:.1f}); a restart found one with "
-                            f"{best[0]:.1f}, used")
+                            f"(robust chi-square {others[0][0]:.0f}); a restart found one with "
+                            f"{best[0]:.0f}, used")
             gate = {id(v): t for v, t in zip(sub, tot)}
             for v in uv:
                 v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, best[1].R,
@@ -719,10 +719,10 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                 if used[k]:
                     rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
         for c2, r in others:
-            if c2 - best[0] < AMBIGUITY_CHI2 * max(1.0, best[0] / max(dof, 1)):
+            if c2 - best[0] < AMBIGUITY_CHI2 * scale ** 2:
                 d6 = pose_difference(r.R, r.T, R, T)
                 second.append(d6)
-                warnings.append(describe_ambiguity(d6, best[0], c2, dof, lever))
+                warnings.append(describe_ambiguity(d6, best[0], c2, scale, lever))
     chi2, dof = view_level_chi2(uv, R, T)
     if dof > 0:
         birge = float(np.sqrt(max(1.0, chi2 / dof)))

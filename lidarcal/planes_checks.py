@@ -29,27 +29,31 @@ from .degeneracy import (
 
 def other_minima(views: list, ref, lever_mm: float, refine: Callable):
     """Multi-start check of the refinement: restarts from the pose turned by +-30 deg about each
-    LiDAR axis (:func:`lidarcal.degeneracy.restart_poses`), each refined and scored by the
-    view-level chi-square (:func:`lidarcal.degeneracy.view_level_chi2`). Returns the best
-    ``(chi2, Refined)``, the other distinct minima found (each more than 3 sigma of the best from
-    every other; the start's own minimum first when a restart beat it) and the dof."""
-    chi2 = lambda r: view_level_chi2(views, r.R, r.T)[0]
-    _, dof = view_level_chi2(views, ref.R, ref.T)
+    LiDAR axis (:func:`lidarcal.degeneracy.restart_poses`), each refined, then refined again
+    anchored at its own minimum (so the weak prior adds nothing), and scored by the
+    refinement's own robust chi-square (twice its cost: the objective it minimises; the
+    view-level chi-square can prefer a wrong pose when few views leave few degrees of freedom).
+    Returns the best ``(chi2, Refined)``, the other distinct minima found (each more than 3
+    sigma of the best from every other; the start's own minimum first when a restart beat it)
+    and the noise scale (point-level or view-level, the larger) that sets how much worse an
+    equally good minimum may be."""
+    base = refine(views, ref.R, ref.T)
+    chi2v, dof = view_level_chi2(views, ref.R, ref.T)
+    scale = max(ref.noise_scale, float(np.sqrt(max(1.0, chi2v / max(dof, 1)))))
     X = np.vstack([np.column_stack([v.points_mm, np.zeros(len(v.beams))]) for v in views])
     centre = (X @ ref.R.T + ref.T).mean(0)
-    found = [(chi2(ref), ref)]
-    cov = pose_uncertainty(ref.information, max(ref.noise_scale, np.sqrt(max(
-        1.0, found[0][0] / max(dof, 1)))), lever_mm, float("inf")).covariance
+    found = [(2.0 * base.cost, ref)]
+    cov = pose_uncertainty(ref.information, scale, lever_mm, float("inf")).covariance
     for Rs, Ts in restart_poses(ref.R, ref.T, centre):
         r = refine(views, Rs, Ts)
         if any(not is_distinct(pose_difference(r.R, r.T, f.R, f.T), cov) for _, f in found):
             continue
         r = refine(views, r.R, r.T)  # anchored at its own minimum (the weak prior)
         if all(is_distinct(pose_difference(r.R, r.T, f.R, f.T), cov) for _, f in found):
-            found.append((chi2(r), r))
+            found.append((2.0 * r.cost, r))
     best = min(found, key=lambda f: f[0])
     others = [f for f in found if f is not best]
-    return best, others, dof
+    return best, others, scale
 
 
 #: The profile check (:func:`_flat_valley`): steps of this many sigmas along the weakest direction

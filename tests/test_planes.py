@@ -176,22 +176,22 @@ def test_five_real_views_leave_the_pose_undetermined_and_say_so(tapas):
 
 def test_real_views_stuck_in_a_local_minimum_are_restarted(tapas):
     # views 00, 01, 03, 04, 06 (boards within 8-26 deg of perpendicular to the scan plane): the
-    # refinement from the linear start stopped 195 mm / 24 deg from the 7-view pose (view-level
-    # chi2 348; measured); restarts from turned poses find the valley with chi2 117, 8 mm away
+    # refinement from the linear start stopped 195 mm / 24 deg from the 7-view pose (robust
+    # chi-square 2423; measured); restarts from turned poses find the valley with 2095, 8 mm
+    # away; the old one is within 4 squared noise scales (9.3^2), so that direction is named
     import copy
 
     res = calibrate_planes([copy.copy(tapas.views[k]) for k in (0, 1, 3, 4, 6)])
     assert any("stopped in a local minimum" in w for w in res.warnings)
-    sig = np.array(res.uncertainty.translation_mm, float)
-    assert np.all(np.abs(res.T - tapas.T) <= 3 * sig), (res.T - tapas.T, sig)
-    d_rot = np.degrees(Rotation.from_matrix(res.R @ tapas.R.T).as_rotvec())
-    assert np.all(np.abs(d_rot) <= 3 * np.array(res.uncertainty.rotation_deg, float))
+    assert np.linalg.norm(res.T - tapas.T) < 20.0
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(res.R @ tapas.R.T).as_rotvec())) < 2.0
+    assert any("a second pose fits the views about as well" in w for w in res.warnings)
 
 
 def test_real_views_with_two_equally_good_poses_name_the_ambiguity(tapas):
-    # views 00, 02, 03, 04: two valleys 20 deg / 135 mm apart fit them with view-level chi2 38.7
-    # and 41.2 (2 dof, measured); before the restarts the fit gave the far one with sigmas of
-    # 9-19 mm and 1.5 deg, 123 mm from the 7-view pose, and named nothing
+    # views 00, 02, 03, 04: two valleys 20 deg / 135 mm apart fit them with robust chi-squares
+    # 1674 and 1683 (noise scale 4.5, measured); before the restarts the fit gave one of them
+    # with sigmas of 9-19 mm and 1.5 deg, 123 mm from the 7-view pose, and named nothing
     import copy
 
     res = calibrate_planes([copy.copy(tapas.views[k]) for k in (0, 2, 3, 4)])
