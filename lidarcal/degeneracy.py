@@ -178,3 +178,61 @@ def view_level_chi2(views: list, R: np.ndarray, T: np.ndarray) -> tuple[float, i
         cov = G @ v.board.cov @ G.T + noise
         chi2 += float(ab @ np.linalg.solve(cov, ab))
     return chi2, 2 * len(views) - 6
+
+
+#: Restarts of the refinement: the pose turned by +-this angle (deg) about each LiDAR axis through
+#: the board returns' centroid (the returns stay near their boards, so the fit can slide into
+#: another valley). On the real TAPAS views, subsets whose boards are all within ~20 deg of
+#: perpendicular to the scan plane have a second valley ~20 deg and 100-200 mm away.
+RESTART_DEG = 30.0
+#: A second minimum is as good as the best when its robust chi-square exceeds the best's by
+#: less than this many squared noise scales (4 = two sigma of one parameter).
+AMBIGUITY_CHI2 = 4.0
+#: ... and distinct when it lies more than this many sigmas (Mahalanobis, the best fit's
+#: covariance) from the best.
+DISTINCT_SIGMA = 3.0
+
+
+def restart_poses(R: np.ndarray, T: np.ndarray, centre: np.ndarray,
+                  angle_deg: float = RESTART_DEG) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Start poses for a multi-start refinement: ``X_cam = R p + T`` turned by ``+-angle_deg``
+    about each LiDAR axis (columns of ``R``) through ``centre`` (camera frame, mm):
+    ``R' = Q R``, ``T' = Q (T - c) + c``."""
+    from scipy.spatial.transform import Rotation
+
+    out = []
+    for k in range(3):
+        for s in (-1.0, 1.0):
+            Q = Rotation.from_rotvec(s * np.radians(angle_deg) * R[:, k]).as_matrix()
+            out.append((Q @ R, Q @ (T - centre) + centre))
+    return out
+
+
+def pose_difference(Ra: np.ndarray, Ta: np.ndarray, Rb: np.ndarray, Tb: np.ndarray) -> np.ndarray:
+    """``(omega, dT)`` (rad, mm) taking pose b to pose a: ``Ra = exp(omega) Rb``, ``Ta = Tb + dT``."""
+    from scipy.spatial.transform import Rotation
+
+    return np.concatenate([Rotation.from_matrix(Ra @ Rb.T).as_rotvec(), Ta - Tb])
+
+
+def is_distinct(diff6: np.ndarray, covariance: np.ndarray, sigmas: float = DISTINCT_SIGMA) -> bool:
+    """Whether a pose ``diff6`` away (:func:`pose_difference`) lies outside ``sigmas`` of a fit
+    with this 6x6 ``covariance`` (pseudo-inverse: undetermined directions count as covered)."""
+    P = np.linalg.pinv(covariance, rcond=1e-12, hermitian=True)
+    return bool(np.sqrt(max(float(diff6 @ P @ diff6), 0.0)) > sigmas)
+
+
+def describe_ambiguity(diff6: np.ndarray, chi2_best: float, chi2_other: float, scale: float,
+                       lever_mm: float) -> str:
+    """Words for a second minimum (a pose ``diff6`` away, :func:`pose_difference`) that fits the
+    views about as well as the best (robust chi-squares, noise scale ``scale``)."""
+    w, t = diff6[:3], diff6[3:]
+    ang = float(np.degrees(np.linalg.norm(w)))
+    ax = w / max(np.linalg.norm(w), 1e-12)
+    return (f"a second pose fits the views about as well (robust chi-square {chi2_other:.0f} "
+            f"against {chi2_best:.0f}, within {AMBIGUITY_CHI2:.0f} x the noise scale {scale:.1f} "
+            f"squared): {ang:.1f} deg about camera-frame "
+            f"[{ax[0]:.3f}, {ax[1]:.3f}, {ax[2]:.3f}] and {np.linalg.norm(t):.0f} mm away "
+            f"({ang * np.pi / 180 * lever_mm + np.linalg.norm(t):.0f} mm at the boards); the pose "
+            "is undetermined along that difference and its sigma is null there; add views with "
+            "the board tilted forwards/backwards against the scan plane")

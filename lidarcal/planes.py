@@ -46,17 +46,21 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .degeneracy import (
+    AMBIGUITY_CHI2,
     MIN_VIEWS,
     PARALLEL_LIMIT,
     UNDETERMINED_MM,
     Uncertainty,
+    describe_ambiguity,
     describe_degeneracy,
+    pose_difference,
     pose_uncertainty,
     unobservable_directions,
     view_level_chi2,
 )
 from .geometry import Plane, nearest_rotation, plane_basis
 from .io.dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
+from .planes_checks import FLAT_STEP, direction_words, flat_valley, other_minima
 from .scan import scan_points
 from .scan_segments import MIN_POINTS, LineSegment, line_segments, local_line_noise
 
@@ -731,7 +735,30 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
         for k, v in enumerate(views):
             if used[k]:
                 rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
-    chi2, dof = view_level_chi2([v for v, u in zip(views, used) if u], R, T)
+    uv = [v for v, u in zip(views, used) if u]
+    second: list[np.ndarray] = []
+    if not held:  # restarts: a better valley (adopted), or an equally good one far away (named)
+        best, others, scale = other_minima(uv, ref, lever, refine_extrinsics)
+        if best[1] is not ref:
+            warnings.append(f"the refinement from the linear start stopped in a local minimum "
+                            f"(robust chi-square {others[0][0]:.0f}); a restart found one with "
+                            f"{best[0]:.0f}, used")
+            gate = {id(v): t for v, t in zip(sub, tot)}
+            for v in uv:
+                v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, best[1].R,
+                                            best[1].T, 4.0 * gate[id(v)], v.beams)
+            ref = refine_extrinsics([v for v in uv if len(v.beams) >= MIN_POINTS], best[1].R,
+                                    best[1].T)
+            R, T = ref.R, ref.T
+            for k, v in enumerate(views):
+                if used[k]:
+                    rms[k] = float(np.sqrt(np.mean(plane_residuals_mm(v, R, T) ** 2)))
+        for c2, r in others:
+            if c2 - best[0] < AMBIGUITY_CHI2 * scale ** 2:
+                d6 = pose_difference(r.R, r.T, R, T)
+                second.append(d6)
+                warnings.append(describe_ambiguity(d6, best[0], c2, scale, lever))
+    chi2, dof = view_level_chi2(uv, R, T)
     if dof > 0:
         birge = float(np.sqrt(max(1.0, chi2 / dof)))
         if birge > ref.noise_scale:
@@ -744,7 +771,17 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     else:
         warnings.append(f"{sum(used)} views fix the six pose parameters exactly: nothing checks "
                         "them; add views")
-    unc = pose_uncertainty(ref.information, ref.noise_scale, lever, limit_mm, held)
+    if not held and not second:
+        flat = flat_valley(uv, ref, lever, refine_extrinsics)
+        if flat is not None:
+            second.append(flat[0])
+            warnings.append(f"the fit's valley is far flatter than its curvature says along "
+                            f"{direction_words(flat[0])}: {FLAT_STEP:.0f} sigma along it the "
+                            f"cost rises by {100 * flat[1]:.0f} % of the quadratic prediction, so "
+                            "the pose is undetermined along it and its sigma is null there (boards "
+                            "nearly perpendicular to the scan plane); add views with the board "
+                            "tilted forwards/backwards against the scan plane")
+    unc = pose_uncertainty(ref.information, ref.noise_scale, lever, limit_mm, held + second)
     warnings += describe_degeneracy([v.board.plane for v, u in zip(views, used) if u], unc)
     return PlanesResult(R, T, views, used, rms, unc, ref, warnings, R0, T0)
 
