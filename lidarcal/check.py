@@ -130,10 +130,19 @@ class CheckResult:
 def saturated_share(image: np.ndarray, centres_px: np.ndarray) -> float:
     """Share of the stripe's core pixels at the image's full scale (255 for 8 bits).
 
-    The core is the pixel under each sub-pixel centre and its neighbours above and
-    below (stripes are traced column by column, :func:`lidarcal.stripe.stripe_centres`).
+    The core is the pixel under the stripe in every column its centres span and its
+    neighbours above and below (stripes are traced column by column,
+    :func:`lidarcal.stripe.stripe_centres`); columns without a centre (a clipped profile
+    dropped where it crosses a square edge, :mod:`lidarcal.stripe_clipped`) are read at the
+    stripe interpolated from its neighbours, so dropping clipped profiles does not hide the
+    clipping. ``centres_px``: one stripe's centres, or a list of stripes (one per board).
     """
-    c = np.asarray(centres_px, dtype=float).reshape(-1, 2)
+    if isinstance(centres_px, (list, tuple)):
+        parts = [np.asarray(c, dtype=float).reshape(-1, 2) for c in centres_px]
+        parts = [_every_column(c) for c in parts if len(c)]
+        c = np.vstack(parts) if parts else np.zeros((0, 2))
+    else:
+        c = _every_column(np.asarray(centres_px, dtype=float).reshape(-1, 2))
     if len(c) == 0:
         return 0.0
     h, w = image.shape[:2]
@@ -142,6 +151,16 @@ def saturated_share(image: np.ndarray, centres_px: np.ndarray) -> float:
     ys = np.clip(np.stack([y - 1, y, y + 1]), 0, h - 1)
     full = np.iinfo(image.dtype).max if np.issubdtype(image.dtype, np.integer) else 1.0
     return float(np.mean(image[ys, np.broadcast_to(x, ys.shape)] >= full))
+
+
+def _every_column(c: np.ndarray) -> np.ndarray:
+    """One stripe's centres at every integer column they span (the row interpolated between
+    the neighbouring centres where a column has none); one per column where it has."""
+    if len(c) < 2:
+        return c
+    c = c[np.argsort(c[:, 0])]
+    cols = np.arange(np.round(c[0, 0]), np.round(c[-1, 0]) + 1)
+    return np.column_stack([cols, np.interp(cols, c[:, 0], c[:, 1])]) if len(cols) else c
 
 
 def _thumbnail(image: np.ndarray, width: int = THUMB_WIDTH_PX) -> tuple[np.ndarray, float]:
@@ -175,7 +194,7 @@ def _check_position(pos: Position, camera: CameraModel | None, boards, lidar, rh
     if img is not None and boards is not None:
         centres, _, stripe_problems = board_stripe_centres(camera, img, boards, rho=rho)
         out.centres_px = (centres[0], centres[1])
-        out.saturated_share = saturated_share(img, np.vstack(centres))
+        out.saturated_share = saturated_share(img, list(centres))
         few = [(k, p) for k, p in enumerate(stripe_problems) if p]
         for k, problem in few:
             out.problems.append(f"{pos.stripe_image}: board {k}: {problem}; is the stripe on both "

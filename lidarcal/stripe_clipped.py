@@ -59,7 +59,7 @@ def clipped_core_pixels(img: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     vals = img[mask]
     if vals.size < 20:
         return None
-    top = vals.max()
+    top = int(vals.max())  # a Python int: top - 1 must not wrap at 0 (uint8)
     clipped = ((img >= top - 1) & mask).astype(np.uint8)
     blocks = cv2.erode(clipped, np.ones((2, 2), np.uint8), anchor=(0, 0),
                        borderType=cv2.BORDER_CONSTANT, borderValue=0)

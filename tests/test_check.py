@@ -56,6 +56,12 @@ def test_saturated_share_counts_clipped_core_pixels():
     centres = np.column_stack([np.arange(30) + 0.2, np.full(30, 10.1)])
     assert saturated_share(img, centres) == pytest.approx(6 / 30)
     assert saturated_share(img, np.empty((0, 2))) == 0.0
+    # the clipped columns' centres dropped (lidarcal.stripe_clipped drops clipped profiles that
+    # cross a square edge): the stripe is read there between its neighbours all the same
+    kept = centres[[0, *range(6, 30)]]
+    assert saturated_share(img, kept) == pytest.approx(6 / 30)
+    # one stripe per board: the gap between the boards (columns 17-18) is not read
+    assert saturated_share(img, [kept[:12], kept[14:]]) == pytest.approx(6 / 28)
 
 
 def test_a_dark_stripe_image_is_a_problem_naming_it(dataset_copy, tmp_path):
