@@ -213,7 +213,8 @@ def build_oneboard_source(res, board: BoardSpec, folder: Path, name: str, figure
     for k, v in enumerate(res.views):
         parts.append(fig(f"projection_{k:02d}", lambda k=k: projection_figure(res, k),
                          f"{v.name}: the LiDAR returns drawn on the photo with the calibration "
-                         "(board returns ringed, the board's outline in yellow).", width="80%"))
+                         "(board returns ringed, the board's outline in yellow).", width="80%",
+                         photo=True))
     parts.append("= Provenance\n")
     parts.append(typst_table(["", ""], [["lidarcal", esc(__version__)], ["command", esc(command or "")],
                                         ["created", esc(created)]], align="left",
