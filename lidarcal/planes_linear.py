@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .degeneracy import MIN_VIEWS, PARALLEL_LIMIT
-from .geometry import Plane, nearest_rotation
+from .geometry import Plane, nearest_rotation, skew
 from .scan_segments import LineSegment
 
 
@@ -77,13 +77,6 @@ def _hypotheses(flat: np.ndarray) -> np.ndarray:
     return _rigid_fit(R, T, N, b)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]_x`` for a batch of vectors (K, 3) -> (K, 3, 3)."""
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1),
-                     np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
-
-
 def _rigid_fit(R: np.ndarray, T: np.ndarray, N: np.ndarray, b: np.ndarray,
                iterations: int = 6) -> np.ndarray:
     """Rigid ``vec(H) = (r1, r2, T)`` (K, 9) minimising each hypothesis' own point-on-plane sum
@@ -101,8 +94,8 @@ def _rigid_fit(R: np.ndarray, T: np.ndarray, N: np.ndarray, b: np.ndarray,
     for _ in range(iterations):
         h = np.concatenate([R[:, :, 0], R[:, :, 1], T], axis=1)
         J = np.zeros((K, 9, 6))
-        J[:, 0:3, 0:3] = -_skew(R[:, :, 0])
-        J[:, 3:6, 0:3] = -_skew(R[:, :, 1])
+        J[:, 0:3, 0:3] = -skew(R[:, :, 0])
+        J[:, 3:6, 0:3] = -skew(R[:, :, 1])
         J[:, 6:9, 3:6] = eye
         g = np.einsum("kia,kij,kj->ka", J, N, h) - np.einsum("kia,ki->ka", J, b)
         A = np.einsum("kia,kij,kjb->kab", J, N, J) + 1e-12 * scale * np.eye(6)

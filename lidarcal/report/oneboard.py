@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..degeneracy import pose_difference
+from ..geometry import check_rotation
 from ..io.dataset import BoardSpec, DatasetError, read_json_object
 from .figures import _Figures
 from .markup import _template, compile_typst, esc, fnum, typst_table, vec
@@ -50,9 +52,11 @@ def read_extrinsics(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if R.shape != (3, 3) or T.shape != (3,) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(T))):
         raise DatasetError(p, "R must be 3x3 and T_mm 3 finite numbers; write it again with "
                               "`lidarcal planes`")
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
-        raise DatasetError(p, "R is not a rotation (R^T R != I or det < 0); write it again with "
-                              "`lidarcal planes`")
+    try:
+        check_rotation(R)
+    except ValueError as e:
+        raise DatasetError(p, f"R is not a rotation ({e}); write it again with `lidarcal planes`"
+                           ) from None
     return R, T
 
 
@@ -87,15 +91,15 @@ def _held_out(res, leave_one_out) -> list[dict]:
 
 
 def _rotation_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """The angle (deg) of the rotation between two poses' ``R``."""
+    return float(np.degrees(np.linalg.norm(pose_difference(R_a, np.zeros(3), R_b, np.zeros(3))[:3])))
 
 
 def _sigma_text(values) -> str:
     return "(" + ", ".join("undetermined" if v is None else fnum(v, 3) for v in values) + ")"
 
 
-def _summary(doc: dict, res, board: BoardSpec) -> str:
+def _summary(doc: dict, board: BoardSpec) -> str:
     used = sum(1 for v in doc["views"] if v["used"])
     sig = doc["sigma"]
     rows = [
@@ -200,7 +204,7 @@ def build_oneboard_source(res, board: BoardSpec, folder: Path, name: str, figure
               f'footer-left: [lidarcal {esc(__version__)} -- {esc(created)}])\n'),
              (f"#align(center)[#text(18pt, weight: \"bold\")[{title}] \\ #v(0.3em) "
               f"#text(12pt)[{esc(name)}: {len(res.views)} photo + scan pairs]]\n"),
-             _summary(doc, res, board), _views_table(doc, loo)]
+             _summary(doc, board), _views_table(doc, loo)]
     if stored is not None:
         parts.append(_stored_section(stored[0], stored[1], stored[2], res,
                                      stored_residuals(res, stored[1], stored[2])))
