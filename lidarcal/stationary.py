@@ -71,7 +71,7 @@ def default_tolerance_deg(psi_deg: np.ndarray) -> float:
 
 def default_min_duration_s(angle_period_s: float, scan_period_s: float) -> float:
     """``max(3 angle periods, 4 scan periods)``: a hold is seen in >= 3 readings and is long
-    enough for >= 3 whole scans (the per-beam median of 3 rejects one bad scan)."""
+    enough for >= 3 whole scans (the per-beam clipped mean of 3 rejects one bad scan)."""
     return max(3.0 * angle_period_s, 4.0 * scan_period_s)
 
 

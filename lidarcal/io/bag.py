@@ -17,8 +17,8 @@ Clock: a message's time is its ``header.stamp``; a message without a header (Flo
 or a topic whose stamps are more than 1 s from the bag's receive (log) times (another
 clock), uses its log time instead (a scan then ends at its log time). Positions are the stationary periods of the angle
 (:mod:`lidarcal.stationary`); a scan is used when all its beams fall inside a period,
-a frame when its stamp does. Per position: the per-beam median of the valid returns
-and the per-pixel median of the stripe frames; ``psi_deg`` is the median angle of
+a frame when its stamp does. Per position: the per-beam clipped mean of the valid returns
+(:func:`combine_scans`) and the per-pixel median of the stripe frames; ``psi_deg`` is the median angle of
 the period. Sweeps (RIG.json ``measurements`` with ``start_s``/``end_s``, seconds
 from the bag's first message): every scan in the window, with psi interpolated
 linearly in the angle readings at the scan's mid-time ``stamp + (n - 1) / 2 *
@@ -40,6 +40,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..geometry import MAD_TO_SIGMA
 from ..stationary import (
     default_min_duration_s,
     default_tolerance_deg,
@@ -300,12 +301,40 @@ def scan_csv_text(angles_deg: np.ndarray, range_mm: np.ndarray) -> str:
         f"{a:.6f},{_fmt_range(r)}\n" for a, r in zip(angles_deg.tolist(), range_mm.tolist()))
 
 
+#: a still scan's return farther than this many robust sigmas from its beam's median is left
+#: out of the beam's mean (:func:`combine_scans`): false rejection ~1e-4 for Gaussian noise
+CLIP_SIGMAS = 4.0
+
+
 def combine_scans(ranges: list[np.ndarray]) -> np.ndarray:
-    """Per-beam median of the valid returns (NaN where no scan has one)."""
-    stack = np.vstack(ranges)
+    """Per-beam clipped mean of the valid returns of a position's still scans (NaN where no scan
+    has one).
+
+    The mean of the returns within ``CLIP_SIGMAS`` robust sigmas of the beam's median: a
+    median-anchored trimmed mean (Huber, *Robust Statistics*, 1981, ch. 3). The median alone
+    wastes information: for Gaussian range noise its variance is ``pi / 2`` of the mean's for
+    many scans (1.35x for 3 scans, 1.43x for 5, 1.5x for 20), so every line fitted to the
+    combined scan (eqs. 7-12) is that much noisier. The clip keeps the median's robustness:
+    a spurious return, or a beam flickering between the board and the wall behind it, lies
+    far from its beam's median and is left out, so one bad scan of three is rejected as the
+    median rejects it. The noise sigma is pooled over the whole stack, from the differences
+    of consecutive valid returns of each beam (``1.4826 median |d| / sqrt 2``: unbiased for
+    any number of scans, two returns per outlier); ranges quantised much coarser than their
+    noise give sigma 0 and the mean of the returns equal to the median, i.e. the median.
+    """
+    stack = np.vstack(ranges).astype(float)
+    stack[~np.isfinite(stack)] = np.nan
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN beams stay NaN
-        return np.nanmedian(stack, axis=0)
+        med = np.nanmedian(stack, axis=0)
+        valid = np.isfinite(stack)
+        d = np.concatenate([np.diff(stack[valid[:, j], j]) for j in range(stack.shape[1])]
+                           ) if len(stack) > 1 else np.zeros(0)
+        sigma = MAD_TO_SIGMA * float(np.median(np.abs(d))) / math.sqrt(2.0) if len(d) else 0.0
+        keep = valid & (np.abs(stack - med) <= CLIP_SIGMAS * sigma)
+        n = keep.sum(axis=0)
+        mean = np.where(keep, stack, 0.0).sum(axis=0) / np.maximum(n, 1)
+    return np.where(n > 0, mean, med)
 
 
 def combine_frames(frames: list[np.ndarray]) -> np.ndarray:

@@ -10,7 +10,7 @@ whole recording, so scans and stripe frames are also taken DURING the moves:
 - ``/scan`` (``sensor_msgs/LaserScan``, metres; ``header.stamp`` = first beam). While the
   turntable holds a position (within ``hold_band_deg``) a scan is the position's scan with
   a few returns invalidated per scan (0, inf, NaN, beyond ``range_max``, below
-  ``range_min``; the per-beam median of the valid returns is the original scan); while it
+  ``range_min``; the per-beam clipped mean of the valid returns is the original scan); while it
   moves, a wrong scan (ranges 3 % long and shifted by 7 beams) that must never be used;
 - ``/camera/stripes/image_raw`` (mono8 or bgr8 ``Image``) or ``.../compressed`` (png or
   jpeg ``CompressedImage``), running during the calibration only: the position's stripe
@@ -270,7 +270,7 @@ def write_bag(dataset: str | Path, bag: str | Path, *, storage: str = "rosbag1",
 
     def scan_msg(t0: float, ranges_mm: np.ndarray, corrupt: bool):
         r = np.where(np.isfinite(ranges_mm), ranges_mm / 1000.0, np.inf).astype(np.float32)
-        if corrupt:  # invalid returns the median of the valid ones must skip
+        if corrupt:  # invalid returns the combination of the valid ones must skip
             bad = rng.random(n_beams) < 0.05
             kind = rng.integers(0, 5, n_beams)
             vals = np.array([0.0, np.inf, np.nan, rmax * 1.5, rmin * 0.5], dtype=np.float32)
