@@ -146,7 +146,7 @@ def refine_pose(pose: Pose, cam_lines: Sequence[Line3D], seg_points: Sequence[np
     with camera line k). Rotation as a rotation vector about ``pose.R``.
 
     Note: with the camera lines held fixed this optimum coincides with the
-    constrained line fit + eqs. (13)-(14) (the best plane for the points is the
+    constrained orthogonal line fit (``fit_v_lines(..., weighting="orthogonal")``) + eqs. (13)-(14) (the best plane for the points is the
     lines' plane, and within it the problem is exactly the constrained fit), so
     it mostly serves as a check, or with a robust ``loss``.
     """

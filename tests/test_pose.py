@@ -48,13 +48,13 @@ def test_pose_residual_reports_unequal_angles():
         pose_from_line_pairs(np.zeros((3, 3)), l_l, np.zeros(3), np.zeros(3))
 
 
-def _scan_solution(seed, sigma=1.0, upright=True, step=0.083333, half=35.0):
+def _scan_solution(seed, sigma=1.0, upright=True, step=0.083333, half=35.0, weighting="range"):
     rng = np.random.default_rng(seed)
     tr = make_truth(rng, upright=upright)
     ang, rho, lab = simulate_scan(tr, rng, sigma_mm=sigma, angle_min_deg=-half,
                                   angle_max_deg=half, angle_step_deg=step)
     v = split_v(ang, rho)
-    L = fit_v_lines(v.points1, v.points2, tr.alpha)
+    L = fit_v_lines(v.points1, v.points2, tr.alpha, weighting=weighting)
     hint = (0.0, -1.0, 0.0) if upright else (0.0, 1.0, 0.0)
     p = single_shot_pose(tr.l_cam, tr.E_cam, tr.alpha, L, z_axis_hint=hint)
     truth_pairs = (0, 1) if lab[v.index1[len(v.index1) // 2]] == BOARD1 else (1, 0)
@@ -125,7 +125,8 @@ def test_single_shot_accuracy_over_seeds(sigma, step, half, capsys):
 
 
 def test_refine_pose_agrees_with_constrained_fit_and_recovers_from_a_perturbation():
-    tr, v, _L, p, _pairs = _scan_solution(4, sigma=2.0)
+    # refine_pose minimises orthogonal distances: it meets the orthogonal constrained fit
+    tr, v, _L, p, _pairs = _scan_solution(4, sigma=2.0, weighting="orthogonal")
     cam_lines = [Line3D(tr.E_cam, tr.l_cam[0]), Line3D(tr.E_cam, tr.l_cam[1])]
     segs = [(v.points1, v.points2)[k] for k in p.info["pairs"]]
     r = refine_pose(p, cam_lines, segs)

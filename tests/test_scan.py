@@ -228,7 +228,7 @@ def _constrained_cost(x, p1, p2, alpha, sign):
 def test_constrained_fit_is_the_orthogonal_optimum(seed):
     tr, ang, rho, _lab = truth_scan(seed, sigma=2.0)
     v = split_v(ang, rho)
-    L = fit_v_lines(v.points1, v.points2, tr.alpha)
+    L = fit_v_lines(v.points1, v.points2, tr.alpha, weighting="orthogonal")
     P = fit_v_lines_paper(v.points1, v.points2, tr.alpha)
     # angle exactly alpha, for both
     for fit in (L, P):
@@ -248,6 +248,65 @@ def test_constrained_fit_is_the_orthogonal_optimum(seed):
         assert 2 * sol.cost <= best * (1 + 1e-6)
     # the paper's linearised scheme never does better (closed form = global optimum)
     assert L.residual_rms_mm <= P.residual_rms_mm * (1 + 1e-12)
+
+
+def _range_cost(x, p1, p2, alpha, sign):
+    """Range residuals of the V (the LiDAR's noise model): r_i - c_k / (n_k . u_i)."""
+    n1 = np.array([np.cos(x[0]), np.sin(x[0])])
+    out = []
+    for p, n, c in ((p1, n1, x[1]), (p2, _rot(sign * alpha) @ n1, x[2])):
+        r = np.hypot(p[:, 0], p[:, 1])
+        out.append(r - c / ((p / r[:, None]) @ n))
+    return np.concatenate(out)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_range_weighted_fit_is_the_range_least_squares_optimum(seed):
+    """The default fit (weighting="range") is the least-squares optimum of the ranges (the ML
+    fit under range noise along the beams): scipy's least_squares from the orthogonal fit,
+    the free fit and the paper's answer cannot beat it, and it beats the orthogonal fit in
+    that cost while its orthogonal rms is (necessarily) no lower."""
+    tr, ang, rho, _lab = truth_scan(seed, sigma=2.0)
+    v = split_v(ang, rho)
+    L = fit_v_lines(v.points1, v.points2, tr.alpha)
+    O = fit_v_lines(v.points1, v.points2, tr.alpha, weighting="orthogonal")
+    P = fit_v_lines_paper(v.points1, v.points2, tr.alpha)
+    assert L.info["weighting"] == "range" and L.info["iterations"] <= 6
+    assert abs(np.arccos(np.clip(L.l1 @ L.l2, -1, 1)) - tr.alpha) < 1e-9 and L.sign == -1
+
+    def x_of(fit):  # a start: the fit's line 1, line 2's offset its points' mean projection
+        n = fit.line1.normal
+        n2 = _rot(L.sign * tr.alpha) @ n
+        return [np.arctan2(n[1], n[0]), fit.line1.offset, float(np.mean(v.points2 @ n2))]
+
+    n = L.line1.normal
+    np.testing.assert_allclose(L.line2.normal, _rot(L.sign * tr.alpha) @ n, atol=1e-12)
+    x_L = [np.arctan2(n[1], n[0]), L.line1.offset, L.line2.offset]
+    best = np.sum(_range_cost(x_L, v.points1, v.points2, tr.alpha, L.sign) ** 2)
+    for start in (O, L.free, P):
+        sol = least_squares(_range_cost, x_of(start), args=(v.points1, v.points2, tr.alpha, L.sign),
+                            xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        assert best <= 2 * sol.cost * (1 + 1e-9)
+    x_O = [np.arctan2(O.line1.normal[1], O.line1.normal[0]), O.line1.offset, O.line2.offset]
+    assert best < np.sum(_range_cost(x_O, v.points1, v.points2, tr.alpha, L.sign) ** 2)
+    assert O.residual_rms_mm <= L.residual_rms_mm * (1 + 1e-12)
+    # the range residuals' rms is the injected range noise (returns far from grazing)
+    assert 0.8 * 2.0 < L.info["range_rms_mm"] < 1.2 * 2.0
+
+
+def test_range_weighting_falls_back_at_grazing_incidence():
+    """Line 1 passing 1 mm from the LiDAR (its beams run almost along it) makes the range
+    model ill-posed: the fit says so and keeps the orthogonal closed form."""
+    E = np.array([1000.0, 0.0])
+    l1 = np.array([np.cos(np.radians(240)), np.sin(np.radians(240))])
+    p1, p2 = _v_points(E, l1, _rot(-np.radians(120)) @ l1, sigma=0.5, rng=np.random.default_rng(1))
+    n1 = np.array([-l1[1], l1[0]])
+    shift = (E @ n1 - 1.0) * n1
+    L = fit_v_lines(p1 - shift, p2 - shift, np.radians(120))
+    O = fit_v_lines(p1 - shift, p2 - shift, np.radians(120), weighting="orthogonal")
+    assert L.info["weighting"].startswith("orthogonal (a return at"), L.info["weighting"]
+    np.testing.assert_allclose(L.E, O.E)
+    np.testing.assert_allclose(L.E_cov, O.E_cov)
 
 
 @pytest.mark.parametrize("yaw_deg", [0.0, 20.0])
