@@ -448,7 +448,7 @@ def fit_v_lines(points1: np.ndarray, points2: np.ndarray, alpha: float,
     reaches the Cramer-Rao bound of :func:`lidarcal.evaluate.v_fit_crlb`. The orthogonal
     fit weighs every return alike, so it under-weighs the board seen more obliquely,
     whose returns lie closer to its line: for a V facing the LiDAR the two agree within
-    1 % (the rendered wide rigs: 0.2-0.5 %), for a V of 90 deg turned 30 deg away (one
+    1 % (the rendered wide rigs: 0.2-0.5 % in the bound, samples within 2 %), for a V of 90 deg turned 30 deg away (one
     board at 67-75 deg incidence) the orthogonal fit's centre error is 1.4-1.5 times the
     bound, turned 40 deg 2.5-2.8 times (Monte Carlo and first order; issue 13).
 
