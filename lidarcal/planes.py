@@ -232,6 +232,7 @@ class Refined:
     information: np.ndarray
     noise_scale: float
     cost: float
+    converged: bool = True  # False: ``max_nfev`` ran out before a tolerance was met
 
 
 def _quadratic_under(r: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
@@ -255,7 +256,8 @@ WEAK_PRIOR = (0.1, 500.0)
 def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
                       loss: str = "soft_l1", f_scale: float = 3.0,
                       anchor: tuple[np.ndarray, np.ndarray] | None = None,
-                      fixed: list[np.ndarray] = (), lever_mm: float = 1000.0) -> Refined:
+                      fixed: list[np.ndarray] = (), lever_mm: float = 1000.0,
+                      max_nfev: int | None = None) -> Refined:
     """Robust maximum likelihood over the pose and every board plane (Zhang & Pless's
     non-linear step, with the camera's plane noise): residuals
     ``(n_i' . (R p + T) - d_i') / sigma_k`` for every return (``sigma_k`` from
@@ -268,7 +270,8 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
     views do not see stay there instead of drifting with the noise. ``fixed`` pose directions
     (6-vectors of ``(omega, dT)``, e.g. :func:`unobservable_directions`) are held at the start:
     the pose moves only in their complement (orthogonal with rotations scaled by
-    ``lever_mm``), and the returned information is zero along them."""
+    ``lever_mm``), and the returned information is zero along them. ``max_nfev`` caps the
+    residual evaluations (``Refined.converged`` says whether a tolerance was met first)."""
     S = np.diag([lever_mm] * 3 + [1.0] * 3)
     if len(fixed):
         Q, _ = np.linalg.qr(np.array([S @ f for f in fixed]).T)
@@ -285,34 +288,40 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
     used = [v for v in views if v.board is not None and len(v.beams) >= MIN_POINTS]
     pts = [v.points_mm for v in used]
     sig = [_point_sigma(v, R0, p) for v, p in zip(used, pts)]
-    chol = []
-    for v in used:
-        c = v.board.cov + 1e-12 * np.eye(3)
-        chol.append(np.linalg.cholesky(c))
+    # per view: the inverse Cholesky factor of its plane's covariance (the prior's whitening)
+    chol_inv = [np.linalg.inv(np.linalg.cholesky(v.board.cov + 1e-12 * np.eye(3))) for v in used]
+    normals = [v.board.plane.normal for v in used]
+    bases = [v.board.basis for v in used]
+    ds = [v.board.plane.d for v in used]
     m = len(used)
+    Ra, Ta = (R0, T0) if anchor is None else anchor
+    start_from_anchor = Rotation.from_matrix(R0 @ Ra.T)  # R Ra^T = Rot(omega) (R0 Ra^T)
+    prior_sd = np.repeat(WEAK_PRIOR, 3)
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        R, T = _pose(pose6(x), R0, T0)
+        y = pose6(x)
+        turn = Rotation.from_rotvec(y[:3])
+        R, T = turn.as_matrix() @ R0, T0 + y[3:6]
+        R2 = R[:, :2]  # scan points have z = 0 in the LiDAR frame
         out = []
-        for k, v in enumerate(used):
+        for k in range(m):
             dlt = x[kp + 3 * k: kp + 3 + 3 * k]
-            n = v.board.plane.normal + v.board.basis @ dlt[:2]
+            n = normals[k] + bases[k] @ dlt[:2]
             nn = np.linalg.norm(n)
             n = n / nn
-            d = (v.board.plane.d + dlt[2]) / nn
-            X = np.column_stack([pts[k], np.zeros(len(pts[k]))]) @ R.T + T
-            out.append((X @ n - d) / sig[k])
-            out.append(_quadratic_under(np.linalg.solve(chol[k], dlt), loss, f_scale))
-        dev = np.concatenate([Rotation.from_matrix(R @ Ra.T).as_rotvec(), T - Ta])
-        out.append(_quadratic_under(dev / np.repeat(WEAK_PRIOR, 3), loss, f_scale))
+            d = (ds[k] + dlt[2]) / nn
+            # n . (R p + T) - d for every return p (eq. of the board plane in the camera frame)
+            out.append((pts[k] @ (R2.T @ n) + (T @ n - d)) / sig[k])
+            out.append(_quadratic_under(chol_inv[k] @ dlt, loss, f_scale))
+        dev = np.concatenate([(turn * start_from_anchor).as_rotvec(), T - Ta])
+        out.append(_quadratic_under(dev / prior_sd, loss, f_scale))
         return np.concatenate(out)
 
     if m == 0:
         raise ValueError("no view with board returns to refine on")
-    Ra, Ta = (R0, T0) if anchor is None else anchor
     x0 = np.zeros(kp + 3 * m)
     res = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac", method="trf",
-                        tr_solver="lsmr")
+                        tr_solver="lsmr", max_nfev=max_nfev)
     R, T = _pose(pose6(res.x), R0, T0)
     J = res.jac
     info = J.T @ J
@@ -322,7 +331,7 @@ def refine_extrinsics(views: list[ViewData], R0: np.ndarray, T0: np.ndarray,
     n_obs = sum(len(p) for p in pts)
     dof = max(n_obs - 6, 1)
     scale = float(np.sqrt(max(1.0, 2.0 * res.cost / dof)))
-    return Refined(R, T, 0.5 * (marg + marg.T), scale, float(res.cost))
+    return Refined(R, T, 0.5 * (marg + marg.T), scale, float(res.cost), bool(res.status > 0))
 
 
 # ---------------------------------------------------------------------------
