@@ -24,6 +24,11 @@ MIN_POINTS_PER_BOARD = 8
 # jitter is not told apart from the offsets (measured: 14-18 on wide rigs with 0.02 deg
 # jitter, poses' z axes up to 5 sigma off; 0.1 on the harsh preset's 0.003 deg, within 2 sigma)
 JITTER_OFFSET_RATIO = 5.0
+# a stripe or scan segment whose own white scale exceeds its board's by this factor keeps its
+# own (joint.noise._Groups.own_scatter; measured: r18's square-wave stripes 3.5-9x, the other
+# stripes of rendered rigs within ~1.3x); at least this many rows to tell
+OWN_SCATTER_RATIO = 2.0
+OWN_SCATTER_MIN_ROWS = 20
 # central-difference steps: rotations / directions (rad), translations (mm)
 _STEPS = np.array([1e-6] * 2 + [1e-3] * 2 + [1e-6] * 3 + [1e-3] * 3 + ([1e-6] * 3 + [1e-3] * 3) * 2)
 
