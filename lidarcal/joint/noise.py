@@ -219,7 +219,7 @@ class _Groups:
             if not sel.any():
                 continue
             sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
-        sig_g = self.own_scatter(within, w, sig)
+        sig_g = self.own_scatter(within, self.w, sig)
         if not components:
             self.set(sig, v0, v1, sigma_g=sig_g)
             return
