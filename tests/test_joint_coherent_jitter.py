@@ -149,3 +149,20 @@ def test_a_range_offset_explains_the_rigid_fits_distance(small_dataset):
     sig = sigma_block(res.joint_model, res.positions)["poses"]
     d = res.joint_model.info["rigid_spread"]["centre_mm"]
     assert all(s["centre_mm"] >= d[s["index"]] > 29.0 for s in sig)
+
+
+def test_a_doubtful_range_offset_explains_nothing(small_dataset):
+    """Combo r17 (1 % range noise, LiDAR upside down, no offset): the joint fit found a
+    spurious 19 +- 6.1 mm offset and sat 20 mm from the truth and from the rigid fit; an
+    offset within ``OFFSET_EXPLAINS_SIGMAS`` of its sigmas of zero does not excuse the distance."""
+    from dataclasses import replace
+
+    from lidarcal.pipeline import OFFSET_EXPLAINS_SIGMAS, _joint_rigid_warnings
+    from lidarcal.ranging import RangingModel
+
+    res = calibrate(small_dataset, progress=False)
+    res.rigid_model = _Shifted(res.rigid_model, np.array([0.0, 0.0, 20.0]))
+    sig = 19.0 / (OFFSET_EXPLAINS_SIGMAS - 1.9)  # 6.1 mm: 3.1 sigma
+    res.joint_model = replace(res.joint_model, ranging=RangingModel(offset_mm=19.0, offset_sigma_mm=sig))
+    (w,) = _joint_rigid_warnings(res)
+    assert "widened" in w and "explains" not in w, w
