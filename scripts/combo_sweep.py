@@ -119,6 +119,10 @@ HAND: dict[str, tuple[str, ...]] = {
     "wide_enc": ("R:wide", "L:encoder0.02"),
     "wide_fov270yaw_enc": ("R:wide", "L:fov270_yaw90", "L:encoder0.02"),
     "paper_fov270yaw_enc": ("L:fov270_yaw90", "L:encoder0.02"),
+    # its parts one at a time (combo2 round)
+    "paper_enc": ("R:paper", "L:encoder0.02"),
+    "paper_fov270yaw": ("R:paper", "L:fov270_yaw90"),
+    "paper_fov270_enc": ("L:fov270", "L:encoder0.02"),
 }
 
 

@@ -104,7 +104,10 @@ class _Shifted:
     """A pose function moved by ``shift`` (mm) in the camera frame."""
 
     def __init__(self, model, shift: np.ndarray):
+        from lidarcal.turntable import Axis
+
         self.model, self.shift = model, np.asarray(shift, float)
+        self.axis = Axis.from_point_direction(model.axis.point + self.shift, model.axis.direction)
 
     def pose_arrays(self, psi_deg):
         R, T = self.model.pose_arrays(psi_deg)

@@ -112,3 +112,70 @@ def angle_jitter(prob: _Problem, x: np.ndarray, t_reported: np.ndarray, loss: st
     return {"sigma_deg": float(np.degrees(np.sqrt(tau2))), "lr": float(lr),
             "correction_deg": np.degrees(shrink * dhat),
             "correction_sigma_deg": np.degrees(np.sqrt(np.where(ok, shrink * v, tau2)))}
+
+
+def board_steps(prob: _Problem, x: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
+    """Each position's turntable angle step (rad) from each board's stripe alone, white noise
+    (beyond the paper): (2, positions), rig held at ``x``.
+
+    As :func:`_angle_steps` (one central difference of all angles at once), but the noise
+    model of a copy of ``prob`` re-estimated without correlated components, and the sums
+    ``H``, ``g`` taken over one board's stripe rows at a time. A turntable angle error turns
+    the laser plane about the axis and moves both boards' stripes by the same angle step;
+    a stripe's own offset (:class:`lidarcal.joint.noise._Groups`) moves one stripe only.
+    """
+    import copy
+
+    work = copy.copy(prob)
+    work.scan, work.stripe = copy.copy(prob.scan), copy.copy(prob.stripe)
+    work.estimate_noise(x, False)
+    d = prob.data
+    n, ns = d.n_positions, len(d.scan_pos)
+    m = ns + len(d.stripe_pos)
+    t0, h = work.t.copy(), 1e-5
+    r0 = work.normalised(x, False)[:m]
+    work.t = t0 + h
+    rp = work.normalised(x, False)[:m]
+    work.t = t0 - h
+    rm = work.normalised(x, False)[:m]
+    work.t = t0
+    J = ((rp - rm) / (2 * h))[ns:]
+    r = r0[ns:]
+    w = _irls_weights(r / f_scale, loss)
+    out = np.full((2, n), np.nan)
+    for b in range(2):
+        k = d.stripe_board == b
+        H = np.bincount(d.stripe_pos[k], (w * J * J)[k], minlength=n)
+        g = np.bincount(d.stripe_pos[k], (w * J * r)[k], minlength=n)
+        ok = H > 1e-300
+        out[b, ok] = -g[ok] / H[ok]
+    return out
+
+
+#: the two boards' angle steps (:func:`coherent_jitter`) agree beyond chance at this p-value:
+#: the stripes' per-position shifts are taken as turntable angle errors before the correlated
+#: noise model can take them for stripe offsets
+COHERENT_JITTER_P = 1e-4
+
+
+def coherent_jitter(steps: np.ndarray) -> tuple[float, float]:
+    """(F, p) of an angle error common to both boards' steps (beyond the paper).
+
+    ``steps`` (2, positions) from :func:`board_steps`, each ``delta_i + e_bi`` with ``e``
+    the board's own error (white noise, its stripe's offset), independent between the
+    boards. About their means (a common shift of all angles is the reference pose's), the
+    half-sum ``delta_i + (e_0i + e_1i) / 2`` and the half-difference ``(e_0i - e_1i) / 2``
+    have the same variance without a jitter; ``F`` is the ratio of their mean squares and
+    ``p`` its upper tail under ``F(n - 1, n - 1)``.
+    """
+    from scipy.stats import f as f_dist
+
+    ok = np.all(np.isfinite(steps), axis=0)
+    n = int(ok.sum())
+    if n < 4:
+        return 0.0, 1.0
+    s = steps[:, ok] - steps[:, ok].mean(axis=1, keepdims=True)
+    ms = float(np.mean((0.5 * (s[0] + s[1])) ** 2))
+    md = float(np.mean((0.5 * (s[0] - s[1])) ** 2))
+    F = ms / max(md, 1e-300)
+    return F, float(f_dist.sf(F, n - 1, n - 1))

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .params import _CHI1_MEDIAN, CLIP_SIGMAS, SIGNIFICANCE, _robust_sigma
+from .params import (
+    _CHI1_MEDIAN,
+    CLIP_SIGMAS,
+    MAD_TO_SIGMA,
+    OWN_SCATTER_MIN_ROWS,
+    OWN_SCATTER_RATIO,
+    SIGNIFICANCE,
+    _robust_sigma,
+)
 
 BLOCK_ROWS = 400  # groups this large on average are whitened group by group (cache-sized blocks)
 
@@ -48,7 +56,7 @@ class _Groups:
         self.sigma = np.ones(2)
         self.var0 = np.zeros(2)
         self.var1 = np.zeros(2)
-        self.var0_g = self.var1_g = None
+        self.var0_g = self.var1_g = self.sigma_g = None
         self.set_mask(np.ones(len(pos), bool))
 
     def set_mask(self, keep: np.ndarray) -> None:
@@ -61,23 +69,25 @@ class _Groups:
         """Per group: kept residuals ``n`` and ``|s|^2`` over them (weights ``w``)."""
         return self.group_sum(w), np.maximum(self.group_sum(w * self.sc**2), 1e-300)
 
-    def set(self, sigma, var0, var1, var0_g=None, var1_g=None) -> None:
-        """Noise components per board; ``var*_g`` optionally per group (robust weights)."""
+    def set(self, sigma, var0, var1, var0_g=None, var1_g=None, sigma_g=None) -> None:
+        """Noise components per board; ``var*_g`` and the white ``sigma_g`` optionally per
+        group (robust weights)."""
         self.sigma = np.asarray(sigma, float)
         self.var0 = np.asarray(var0, float)
         self.var1 = np.asarray(var1, float)
         self.var0_g = None if var0_g is None else np.asarray(var0_g, float)
         self.var1_g = None if var1_g is None else np.asarray(var1_g, float)
+        self.sigma_g = None if sigma_g is None else np.asarray(sigma_g, float)
         self._update()
 
     def _update(self) -> None:
         b = self.board_of_group
-        s2 = self.sigma[b] ** 2
+        s2 = self.sigma[b] ** 2 if self.sigma_g is None else self.sigma_g ** 2
         v0 = self.var0[b] if self.var0_g is None else self.var0_g
         v1 = self.var1[b] if self.var1_g is None else self.var1_g
         self.g0 = 1 - np.sqrt(s2 / (s2 + self.n * v0))
         self.g1 = 1 - np.sqrt(s2 / (s2 + self.ss * v1))
-        self.sig_g = self.sigma[b]
+        self.sig_g = np.sqrt(s2)
 
     def moments(self, r: np.ndarray, w: np.ndarray | None = None, counts: tuple | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -209,13 +219,15 @@ class _Groups:
             if not sel.any():
                 continue
             sig[b] = _robust_sigma(within[sel & (w > 0)], floor)
+        sig_g = self.own_scatter(within, self.w, sig)
         if not components:
-            self.set(sig, v0, v1)
+            self.set(sig, v0, v1, sigma_g=sig_g)
             return
         w = (np.abs(within) <= CLIP_SIGMAS * sig[self.row_board]).astype(float)
         n, ss = self._counts(w)
         a0, a1 = self.moments(r, w, (n, ss))
         vg = [np.zeros(self.n_groups), np.zeros(self.n_groups)]
+        sg = sig[self.board_of_group] if sig_g is None else sig_g
         for b in range(2):
             grp = (self.board_of_group == b) & (n >= 3)
             G = int(grp.sum())
@@ -224,7 +236,7 @@ class _Groups:
             # a component is kept only when significant: without it, m^2 / var(m | white)
             # averages to 1 +- sqrt(2 / G) (chi-square, 1 dof, G groups)
             for v, a, nn, out in ((v0, a0, n, vg[0]), (v1, a1, ss, vg[1])):
-                white = sig[b] ** 2 / np.maximum(nn[grp], 1e-300)
+                white = sg[grp] ** 2 / np.maximum(nn[grp], 1e-300)
                 if np.mean(a[grp] ** 2 / white) > 1 + SIGNIFICANCE * np.sqrt(2.0 / G):
                     # typical level from the median (chi-square 1 dof: median 0.455), and a
                     # group with a larger effect keeps its own: heavy-tailed group errors
@@ -232,7 +244,47 @@ class _Groups:
                     v[b] = max(float(np.median(a[grp] ** 2) / _CHI1_MEDIAN
                                      - np.median(white)), 0.0)
                     out[grp] = np.maximum(v[b], a[grp] ** 2 - white)
-        self.set(sig, v0, v1, vg[0], vg[1])
+        self.set(sig, v0, v1, vg[0], vg[1], sig_g)
+
+    def own_scatter(self, within: np.ndarray, w: np.ndarray, sig: np.ndarray) -> np.ndarray | None:
+        """Per group, its own white scale where it exceeds ``OWN_SCATTER_RATIO`` times its
+        board's ``sig`` (1.4826 x median absolute ``within`` residual over the group's kept
+        rows, at least ``OWN_SCATTER_MIN_ROWS`` of them), else the board's; None when no group
+        does (beyond the paper).
+
+        A stripe whose centres scatter far more than the others' along it (blurred stripe
+        and board images, the stripe near a square edge: a +-0.5 px square wave where the
+        other stripes scatter 0.03 px; combo r18, poses' z axes 0.11 deg off at 2.6 sigma)
+        then weighs as little as its scatter says instead of steering the fit; its scale also
+        grows with its errors' correlation along it (lag-1 autocorrelation ``rho``:
+        ``sqrt((1 + rho) / (1 - rho))``, the square wave's ~4x; the MAD alone left r18's z
+        axes 0.11 deg off)."""
+        own = sig[self.board_of_group].copy()
+        keep = w > 0
+        gid, a = self.gid[keep], np.abs(within[keep])
+        order = np.lexsort((a, gid))
+        gid, a = gid[order], a[order]
+        n = np.bincount(gid, minlength=self.n_groups)
+        start = np.cumsum(n) - n
+        ok = n >= OWN_SCATTER_MIN_ROWS
+        if not ok.any():
+            return None
+        lo, hi = start[ok] + (n[ok] - 1) // 2, start[ok] + n[ok] // 2
+        mad = MAD_TO_SIGMA * 0.5 * (a[lo] + a[hi])  # each group's median of sorted |r|
+        big = mad > OWN_SCATTER_RATIO * own[ok]
+        if not big.any():
+            return None
+        idx = np.flatnonzero(ok)[big]
+        for g, m in zip(idx, mad[big]):
+            # rows along the stripe: correlated errors (a square wave) carry the information of
+            # fewer rows; the scale grows by sqrt((1 + rho) / (1 - rho)) (lag-1 autocorrelation
+            # rho, an AR(1) sequence's effective sample size)
+            rows = np.flatnonzero(keep & (self.gid == g))
+            e = within[rows[np.argsort(self.sc[rows])]]
+            e = e - e.mean()
+            rho = float(np.clip(np.sum(e[1:] * e[:-1]) / max(float(e @ e), 1e-300), 0.0, 0.98))
+            own[g] = m * np.sqrt((1.0 + rho) / (1.0 - rho))
+        return own
 
 
 def _along(grp: _Groups, coords: np.ndarray) -> np.ndarray:

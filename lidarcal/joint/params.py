@@ -24,6 +24,12 @@ MIN_POINTS_PER_BOARD = 8
 # jitter is not told apart from the offsets (measured: 14-18 on wide rigs with 0.02 deg
 # jitter, poses' z axes up to 5 sigma off; 0.1 on the harsh preset's 0.003 deg, within 2 sigma)
 JITTER_OFFSET_RATIO = 5.0
+# a stripe or scan segment whose own white scale exceeds its board's by this factor keeps its
+# own (joint.noise._Groups.own_scatter; measured by the MAD: combo r18's square-wave stripes
+# 4-14x; the bundled paper rig's stripes median 1.01x, 90 % below 1.24x, 7 of 174 above 2x
+# (their poses then moved 0.0002 mm), its scan segments at most 1.23x); at least this many rows
+OWN_SCATTER_RATIO = 2.0
+OWN_SCATTER_MIN_ROWS = 20
 # central-difference steps: rotations / directions (rad), translations (mm)
 _STEPS = np.array([1e-6] * 2 + [1e-3] * 2 + [1e-6] * 3 + [1e-3] * 3 + ([1e-6] * 3 + [1e-3] * 3) * 2)
 
