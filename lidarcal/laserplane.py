@@ -58,6 +58,7 @@ from .laser_colour import (
     laser_response,
 )
 from .stripe import stripe_centres
+from .stripe_luma import luma_stripe
 from .stripe_quality import quality_problem
 from .stripe_steger import steger_stripe
 
@@ -75,6 +76,9 @@ MAX_BOARD_RMS_PX = 1.0
 CLIPPED_GUARD_SQUARES = 0.125
 #: the board is searched in photos larger than this (px, longer side) reduced to it first
 BOARD_SEARCH_PX = 1600
+#: colour photos: the stripe's centres also found on the full-resolution luma with the lit
+#: board modelled and removed (:mod:`lidarcal.stripe_luma`), used where they scatter less
+LUMA_REFINE = True
 #: below this ratio of the 2nd to the 1st singular value of the points the stripes are
 #: (nearly) parallel and the plane is not determined
 MIN_SPREAD = 0.02
@@ -92,6 +96,9 @@ class PhotoResult:
     problem: str | None = None
     #: the photo's size (w, h) when it is not the camera's (it was then not measured)
     other_size: tuple[int, int] | None = None
+    #: the image the centres were found in: "colour" (the laser's colour response, or a
+    #: gray image) or "luma" (:mod:`lidarcal.stripe_luma`)
+    centres_on: str = "colour"
 
     @property
     def used(self) -> bool:
@@ -112,7 +119,8 @@ class LaserPlaneResult:
                 "rms_mm": _num(self.rms_mm),
                 "sigma": {"normal_deg": _num(self.sigma_normal_deg), "d_mm": _num(self.sigma_d_mm)},
                 "images": [{"name": p.name, "used": p.used, "centres": len(p.centres_px),
-                            "rms_px": _num(p.rms_px)} for p in self.photos],
+                            "rms_px": _num(p.rms_px), "centres_on": p.centres_on}
+                           for p in self.photos],
                 "warnings": list(self.warnings)}
 
 
@@ -340,13 +348,22 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
                              np.ones((k, k), np.uint8))
         mask &= 1 - clipped
         mask &= 1 - wide_objects(response, mask, side)
-        response, _ = along_stripe(response, mask.astype(bool), side, edges,
-                                   smooth_px=side)
+        response, along_deg = along_stripe(response, mask.astype(bool), side, edges,
+                                           smooth_px=side)
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
         sat = None if img.ndim != 3 or colour not in _CHANNEL else \
             img[..., _CHANNEL[colour]] >= SATURATED_DN
+        guide, ginfo = pts, info
         pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info, sat)
+        if LUMA_REFINE and colour in _CHANNEL and len(pts) >= 5 and info["problem"] is None:
+            # the same stripe on the full-resolution luma, the lit board removed: used when
+            # it passes the same gates and its centres scatter less about their line
+            p2, i2 = luma_stripe(img, camera, view, found_spec, pts, guide, ginfo,
+                                 mask.astype(bool), side, along_deg, sat)
+            if i2.get("problem") is None and i2["fit_rms_px"] <= info["fit_rms_px"]:
+                pts, info = p2, i2
+                res.centres_on = "luma"
     res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
         float(info["fit_rms_px"])
     problem = info.get("problem") if "quality" not in info else quality_problem(info["quality"])
