@@ -190,20 +190,21 @@ def luma_background(image: np.ndarray, camera: CameraModel, view, board: BoardSp
     lines = np.unique(labels[at[band]])
     lines = lines[lines >= 0]
     n_u = board.inner_corners[0] + 2
+    uv_mid = np.array(board.inner_corners, float) / 2 - 0.5
 
     def design(idx: np.ndarray, parity: int, sig: float, lap: list[np.ndarray]) -> np.ndarray:
         j = at[idx]
-        w, dwu, dwv = white_share_blurred(uv[j], gu[j], gv[j], board, parity, sig)
-        E = _edge_design(dwu, dwv, labels[j], lines, n_u)
+        w, dwu, dwv, out = white_share_blurred(uv[j], gu[j], gv[j], board, parity, sig)
+        E = _edge_design(dwu, dwv, uv[j] - uv_mid, labels[j], lines, n_u)
         return sparse.hstack([_design(t[idx], s[idx], w, knots, r_out), E,
-                              sparse.csr_matrix(np.column_stack([v[idx] for v in lap]))],
+                              sparse.csr_matrix(np.column_stack([v[idx] for v in lap] + [out]))],
                              format="csr")
 
     def laplacians(parity: int, sig: float) -> list[np.ndarray]:
         # the camera's sharpening: an unsharp mask adds the (negative) Laplacian of the
         # blurred edges, at the edge scale and twice it
-        w, _, _ = white_share_blurred(uv, gu, gv, board, parity, sig)
-        img_w = _scatter(w.astype(np.float32), near, ys.size).reshape(ys.shape)
+        w, _, _, out = white_share_blurred(uv, gu, gv, board, parity, sig)
+        img_w = _scatter((w + out).astype(np.float32), near, ys.size).reshape(ys.shape)
         return [cv2.Laplacian(cv2.GaussianBlur(img_w, (0, 0), f * sig), cv2.CV_32F).ravel()
                 for f in (0.7, 1.5)]
 
@@ -214,7 +215,8 @@ def luma_background(image: np.ndarray, camera: CameraModel, view, board: BoardSp
     for parity in (0, 1):  # the squares' colours, and the edge spread: least squares
         for sig in EDGE_SIGMAS:
             lap = laplacians(parity, sig)
-            coef, keep = _robust_lstsq(design(pick, parity, sig, lap), yv[pick])
+            A = design(pick, parity, sig, lap)
+            coef, keep = _robust_lstsq(A, yv[pick], _smoothness(len(knots), len(lines), A.shape[1]))
             r = yv[pick] - design(pick, parity, sig, lap) @ coef
             rms = float(np.sqrt(np.mean(r[keep] ** 2)))
             if best is None or rms < best[0]:
@@ -222,7 +224,7 @@ def luma_background(image: np.ndarray, camera: CameraModel, view, board: BoardSp
     _, parity, sig = best
     lap = laplacians(parity, sig)
     A = design(fit_idx, parity, sig, lap)
-    coef, keep = _robust_lstsq(A, yv[fit_idx])
+    coef, keep = _robust_lstsq(A, yv[fit_idx], _smoothness(len(knots), len(lines), A.shape[1]))
     rms = float(np.sqrt(np.mean((yv[fit_idx][keep] - A[keep] @ coef) ** 2)))
     resp = np.zeros((H, W_img), np.float32)
     bandimg = np.zeros((H, W_img), bool)
@@ -244,15 +246,16 @@ def _scatter(values: np.ndarray, where: np.ndarray, n: int) -> np.ndarray:
 
 def white_share_blurred(uv: np.ndarray, gu: np.ndarray, gv: np.ndarray, board: BoardSpec,
                         white_parity: int, sigma_px: float
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(L2) the white share of pixels at board coordinates ``uv`` (squares) under a Gaussian
-    edge spread of ``sigma_px``, and its derivatives for a shift (px) of the nearest
-    ``u`` and ``v`` edge lines along their image normals.
+    edge spread of ``sigma_px``, its derivatives for a shift (px) of the nearest ``u`` and
+    ``v`` edge lines along their image normals, and the share beyond the pattern.
 
     Near a corner the chessboard is ``1/2 + 1/2 p sgn(d_u) sgn(d_v)`` (``d``: signed px
     distances to the nearest lines, ``(u - round u) / |grad u|``, ``p = +-1`` by the
     squares' parity); a separable Gaussian turns each sign into ``erf(d / (sqrt 2
-    sigma))``. Beyond the pattern's outer squares the printed border is white.
+    sigma))``. Beyond the pattern's outer squares lies the board's border (its own level,
+    not always white: the last array, blurred alike).
     """
     from scipy.special import erf
 
@@ -270,7 +273,7 @@ def white_share_blurred(uv: np.ndarray, gu: np.ndarray, gv: np.ndarray, board: B
     # inside the pattern (soft): its outer lines u = -1, u = c, v = -1, v = r
     ins = (0.5 * (1 + erf(k * (uv[:, 0] + 1) / nu)) * 0.5 * (1 + erf(k * (c - uv[:, 0]) / nu))
            * 0.5 * (1 + erf(k * (uv[:, 1] + 1) / nv)) * 0.5 * (1 + erf(k * (r - uv[:, 1]) / nv)))
-    return 1.0 - ins * (1.0 - w), ins * dwu, ins * dwv
+    return ins * w, ins * dwu, ins * dwv, 1.0 - ins
 
 
 def _edge_labels(uv: np.ndarray, gu: np.ndarray, gv: np.ndarray, board: BoardSpec
@@ -287,16 +290,25 @@ def _edge_labels(uv: np.ndarray, gu: np.ndarray, gv: np.ndarray, board: BoardSpe
     return np.where(ok, lab, -1)
 
 
-def _edge_design(dwu: np.ndarray, dwv: np.ndarray, labels: np.ndarray, lines: np.ndarray,
-                 n_u_lines: int) -> sparse.csr_matrix:
-    """Columns of a shift of each edge line along its image normal (the white share's
-    derivative there): one column per line of ``lines`` (:func:`_edge_labels`), sparse."""
+def _edge_design(dwu: np.ndarray, dwv: np.ndarray, uv: np.ndarray, labels: np.ndarray,
+                 lines: np.ndarray, n_u_lines: int) -> sparse.csr_matrix:
+    """Columns of a shift and a turn of each edge line along its image normal (the white
+    share's derivative there, and that times the position along the line, in squares
+    from the pattern's middle): two columns per line of ``lines`` (:func:`_edge_labels`),
+    sparse."""
     col = np.searchsorted(lines, labels)
     on = (labels >= 0) & (col < len(lines))
     on[on] &= lines[col[on]] == labels[on]
     rows = np.flatnonzero(on)
-    vals = np.where(labels[rows] < n_u_lines, dwu[rows], dwv[rows])
-    return sparse.csr_matrix((vals, (rows, col[rows])), shape=(len(labels), len(lines)))
+    is_u = labels[rows] < n_u_lines
+    vals = np.where(is_u, dwu[rows], dwv[rows])
+    along = np.where(is_u, uv[rows, 1], uv[rows, 0])
+    n = len(lines)
+    return sparse.csr_matrix((np.concatenate([vals, vals * (along - along.mean() if len(along)
+                                                            else along)]),
+                              (np.concatenate([rows, rows]),
+                               np.concatenate([col[rows], n + col[rows]]))),
+                             shape=(len(labels), 2 * n))
 
 
 def _design(t: np.ndarray, s: np.ndarray, w: np.ndarray, knots: np.ndarray,
@@ -310,9 +322,35 @@ def _design(t: np.ndarray, s: np.ndarray, w: np.ndarray, knots: np.ndarray,
                           sparse.diags(w * sn) @ B, sparse.csr_matrix(tone)], format="csr")
 
 
-def _robust_lstsq(A: sparse.csr_matrix, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares by the normal equations (columns scaled to unit norm), then again
-    without the points beyond 3.5 robust sigmas; (coefficients, points kept)."""
+def _smoothness(n_knots: int, n_lines: int, n_cols: int) -> sparse.csr_matrix:
+    """Prior rows (weight 1, i.e. one pixel's residual of 1 DN) on the hat coefficients of
+    :func:`_design`: their second differences along the stripe vanish, and the terms
+    linear across it (``s``) vanish; and on the edge lines' shifts (they vanish: the edge
+    through the corners). Where the band's pixels fix them (hundreds per knot) the prior
+    does not count; a knot the band leaves without pixels beside the stripe (its end, the
+    board's edge on one side), or an edge hidden under the stripe's core (it runs along the
+    stripe), follows its neighbours or the corners instead of taking any value in the
+    core."""
+    K = n_knots
+    D = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(max(K - 2, 0), K))
+    Z = sparse.csr_matrix((D.shape[0], K))
+    I0, I1 = sparse.csr_matrix((K, K)), sparse.identity(K)
+    rows = [sparse.hstack([D if g == j else Z for j in range(4)]) for g in range(4)]
+    rows += [sparse.hstack([I1 if g == j else I0 for j in range(4)]) for g in (1, 3)]
+    P = sparse.vstack(rows).tocsr()
+    P = sparse.hstack([P, sparse.csr_matrix((P.shape[0], n_cols - 4 * K))], format="csr")
+    e0 = 4 * K + 2  # the edge shifts follow the hats and the two tone terms
+    E = sparse.csr_matrix((np.ones(2 * n_lines), (np.arange(2 * n_lines),
+                                                  e0 + np.arange(2 * n_lines))),
+                          shape=(2 * n_lines, n_cols))
+    return sparse.vstack([P, E], format="csr")
+
+
+def _robust_lstsq(A: sparse.csr_matrix, y: np.ndarray, prior: sparse.csr_matrix | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares by the normal equations (columns scaled to unit norm; ``prior``: rows
+    with zero targets added), then again without the points beyond 3.5 robust sigmas;
+    (coefficients, points kept)."""
     keep = np.ones(len(y), bool)
     coef = np.zeros(A.shape[1])
     for _ in range(2):
@@ -321,6 +359,9 @@ def _robust_lstsq(A: sparse.csr_matrix, y: np.ndarray) -> tuple[np.ndarray, np.n
         scale[scale == 0] = 1.0
         As = Ak @ sparse.diags(1.0 / scale)
         N = (As.T @ As).toarray()
+        if prior is not None:
+            Ps = prior @ sparse.diags(1.0 / scale)
+            N += (Ps.T @ Ps).toarray()
         N[np.diag_indices_from(N)] += 1e-10
         try:
             coef = np.linalg.solve(N, As.T @ y[keep]) / scale
