@@ -6,7 +6,10 @@ board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
 :func:`lidarcal.laser_colour.along_stripe`, kept off overexposed areas, its saturated
 core filled up to a width scaled with the squares; the centroid centres of
 :func:`lidarcal.stripe.stripe_centres` guide Steger's line detector,
-:func:`lidarcal.stripe_steger.steger_stripe`, whose centres are used), their rays meet
+:func:`lidarcal.stripe_steger.steger_stripe`; on a colour photo whose board does not clip,
+the same detector also runs on the full-resolution luma with the lit board modelled and
+removed, :func:`lidarcal.stripe_luma.luma_stripe`, whose centres are used when they pass
+the same gates and scatter less about their line), their rays meet
 the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
@@ -346,19 +349,25 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
         clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
                              np.ones((k, k), np.uint8))
+        board_clips = bool((clipped & mask).any())  # overexposed squares on the board
         mask &= 1 - clipped
         mask &= 1 - wide_objects(response, mask, side)
         response, along_deg = along_stripe(response, mask.astype(bool), side, edges,
                                            smooth_px=side)
+    else:
+        board_clips = False
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
         sat = None if img.ndim != 3 or colour not in _CHANNEL else \
             img[..., _CHANNEL[colour]] >= SATURATED_DN
         guide, ginfo = pts, info
         pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info, sat)
-        if LUMA_REFINE and colour in _CHANNEL and len(pts) >= 5 and info["problem"] is None:
+        if LUMA_REFINE and colour in _CHANNEL and len(pts) >= 5 and info["problem"] is None \
+                and not board_clips:
             # the same stripe on the full-resolution luma, the lit board removed: used when
-            # it passes the same gates and its centres scatter less about their line
+            # it passes the same gates and its centres scatter less about their line (not
+            # on an overexposed board: the luma has no headroom left for the laser on its
+            # white squares, the stripe's luma is cut there)
             p2, i2 = luma_stripe(img, camera, view, found_spec, pts, guide, ginfo,
                                  mask.astype(bool), side, along_deg, sat)
             if i2.get("problem") is None and i2["fit_rms_px"] <= info["fit_rms_px"]:
