@@ -28,7 +28,7 @@ and white squares. Here that board is predicted and subtracted:
      (:func:`luma_stripe`).
 
 Measured on the semi-real JPEG photos (q 90, 4:2:0, Bayer; scripts/semireal_laser.py): the
-centres' error against the true stripe 0.225 px on the colour response, 0.148 px on the
+centres' error against the true stripe 0.225 px on the colour response, 0.141 px on the
 luma response; the board model fits the luma beside the stripe to ~2-3 DN rms.
 """
 
