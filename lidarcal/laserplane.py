@@ -6,7 +6,10 @@ board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
 :func:`lidarcal.laser_colour.along_stripe`, kept off overexposed areas, its saturated
 core filled up to a width scaled with the squares; the centroid centres of
 :func:`lidarcal.stripe.stripe_centres` guide Steger's line detector,
-:func:`lidarcal.stripe_steger.steger_stripe`, whose centres are used), their rays meet
+:func:`lidarcal.stripe_steger.steger_stripe`; on a colour photo whose board does not clip,
+the same detector also runs on the full-resolution luma with the lit board modelled and
+removed, :func:`lidarcal.stripe_luma.luma_stripe`, whose centres are used when they pass
+the same gates and scatter less about their line), their rays meet
 the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
@@ -58,6 +61,7 @@ from .laser_colour import (
     laser_response,
 )
 from .stripe import stripe_centres
+from .stripe_luma import luma_stripe
 from .stripe_quality import quality_problem
 from .stripe_steger import steger_stripe
 
@@ -75,6 +79,9 @@ MAX_BOARD_RMS_PX = 1.0
 CLIPPED_GUARD_SQUARES = 0.125
 #: the board is searched in photos larger than this (px, longer side) reduced to it first
 BOARD_SEARCH_PX = 1600
+#: colour photos: the stripe's centres also found on the full-resolution luma with the lit
+#: board modelled and removed (:mod:`lidarcal.stripe_luma`), used where they scatter less
+LUMA_REFINE = True
 #: below this ratio of the 2nd to the 1st singular value of the points the stripes are
 #: (nearly) parallel and the plane is not determined
 MIN_SPREAD = 0.02
@@ -92,6 +99,9 @@ class PhotoResult:
     problem: str | None = None
     #: the photo's size (w, h) when it is not the camera's (it was then not measured)
     other_size: tuple[int, int] | None = None
+    #: the image the centres were found in: "colour" (the laser's colour response, or a
+    #: gray image) or "luma" (:mod:`lidarcal.stripe_luma`)
+    centres_on: str = "colour"
 
     @property
     def used(self) -> bool:
@@ -112,7 +122,8 @@ class LaserPlaneResult:
                 "rms_mm": _num(self.rms_mm),
                 "sigma": {"normal_deg": _num(self.sigma_normal_deg), "d_mm": _num(self.sigma_d_mm)},
                 "images": [{"name": p.name, "used": p.used, "centres": len(p.centres_px),
-                            "rms_px": _num(p.rms_px)} for p in self.photos],
+                            "rms_px": _num(p.rms_px), "centres_on": p.centres_on}
+                           for p in self.photos],
                 "warnings": list(self.warnings)}
 
 
@@ -338,15 +349,30 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
         clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
                              np.ones((k, k), np.uint8))
+        board_clips = bool((clipped & mask).any())  # overexposed squares on the board
         mask &= 1 - clipped
         mask &= 1 - wide_objects(response, mask, side)
-        response, _ = along_stripe(response, mask.astype(bool), side, edges,
-                                   smooth_px=side)
+        response, along_deg = along_stripe(response, mask.astype(bool), side, edges,
+                                           smooth_px=side)
+    else:
+        board_clips = False
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
         sat = None if img.ndim != 3 or colour not in _CHANNEL else \
             img[..., _CHANNEL[colour]] >= SATURATED_DN
+        guide, ginfo = pts, info
         pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info, sat)
+        if LUMA_REFINE and colour in _CHANNEL and len(pts) >= 5 and info["problem"] is None \
+                and not board_clips:
+            # the same stripe on the full-resolution luma, the lit board removed: used when
+            # it passes the same gates and its centres scatter less about their line (not
+            # on an overexposed board: the luma has no headroom left for the laser on its
+            # white squares, the stripe's luma is cut there)
+            p2, i2 = luma_stripe(img, camera, view, found_spec, pts, guide, ginfo,
+                                 mask.astype(bool), side, along_deg, sat)
+            if i2.get("problem") is None and i2["fit_rms_px"] <= info["fit_rms_px"]:
+                pts, info = p2, i2
+                res.centres_on = "luma"
     res.rms_px = None if not np.isfinite(info.get("fit_rms_px", np.nan)) else \
         float(info["fit_rms_px"])
     problem = info.get("problem") if "quality" not in info else quality_problem(info["quality"])

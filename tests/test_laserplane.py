@@ -185,7 +185,7 @@ def test_cli_writes_the_plane(photos, tmp_path) -> None:
     d = json.loads(out.read_text())
     assert list(d) == ["format", "normal", "d_mm", "rms_mm", "sigma", "images", "warnings"]
     assert d["format"] == "lidarcal-laser-plane/1" and set(d["sigma"]) == {"normal_deg", "d_mm"}
-    assert [set(i) for i in d["images"]] == [{"name", "used", "centres", "rms_px"}] * 7
+    assert [set(i) for i in d["images"]] == [{"name", "used", "centres", "rms_px", "centres_on"}] * 7
     truth = _truth_plane(_truth(photos))
     assert np.degrees(np.arccos(min(1.0, abs(np.dot(d["normal"], truth.normal))))) < 0.5
     assert "03.png" in r.stderr
