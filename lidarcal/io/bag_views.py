@@ -11,14 +11,15 @@ Still intervals are found from the data, with thresholds from the data's own noi
 - **scans**: the range noise of each beam is measured from the differences of
   consecutive scans, ``d ~ N(0, 2 sigma_b^2)`` while still: ``sigma_b`` from the 25th
   percentile of ``|d|`` (:func:`beam_noise_mm`, with the continuity correction of
-  integer-mm readings); the quartile stays a noise measure while a beam sees the moving
-  board up to about half the time. Two scans differ when a run of at least ``MIN_RUN`` = 3 adjacent beams
-  differ by more than ``K_SIGMA sqrt(2) sigma_b`` (4 sigma, and at least 1.5 range
+  integer-mm readings); a beam that sees the moving board a share ``c`` of the time
+  reads too noisy by ``Phi^-1((1 + 0.25 / (1 - c)) / 2) / Phi^-1(0.625)`` (10 %: 1.11,
+  30 %: 1.46), which makes its motion test more lenient, never stricter. Two scans
+  differ when a run of at least ``MIN_RUN`` = 3 adjacent beams differ by more than ``K_SIGMA sqrt(2) sigma_b`` (4 sigma, and at least 1.5 range
   quanta): a mixed return flickering at an edge changes one beam, a moving board a run of
-  them. Still runs (:func:`still_runs`): the scans are cut wherever consecutive scans
-  differ, then each piece is kept where its scans agree with the piece's per-beam median
-  (threshold ``K_SIGMA sqrt(1 + pi / (2 n)) sigma_b``), which trims a slow drift at the
-  ends of a hold.
+  them. Still runs (:func:`still_runs`): a run grows while each scan agrees with the one
+  before it and with the per-beam median of the run's first scans (``K_SIGMA sqrt(1 +
+  pi / (2 n)) sigma_b``), so a slow drift adds up and ends it; then each run is trimmed
+  to where its scans agree with its own median.
 - **frames**: each frame becomes block means (``cv2.resize`` with ``INTER_AREA`` to
   about 80 blocks across), which averages the pixel noise; two frames differ when at
   least ``MIN_RUN`` connected blocks change by more than ``K_SIGMA sqrt(2) sigma_f``
@@ -38,6 +39,7 @@ first message). Topics, clocks and invalid returns follow :mod:`lidarcal.io.bag`
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import shutil
@@ -85,8 +87,8 @@ def beam_noise_mm(ranges_mm: np.ndarray) -> tuple[np.ndarray, float]:
     ``|d| <= k_b``, ``sigma_b = (k_b + q / 2) / (sqrt(2) Phi^-1((1 + p_b) / 2))``, where
     ``q`` is the range quantum (the smallest non-zero ``|d|``, 1 mm for integer-mm
     scanners; ``q / 2`` is the continuity correction of integer readings, ~0 for float
-    ones). The quartile stays a noise measure while a beam sees the moving board up to
-    about half the time. A beam without such pairs gets the median of the others; a
+    ones). A beam that sees the moving board a share ``c`` of the time reads too noisy by
+    ``Phi^-1((1 + 0.25 / (1 - c)) / 2) / Phi^-1(0.625)`` (10 %: x1.11). A beam without such pairs gets the median of the others; a
     beam whose readings never change gets 0.
     """
     from scipy.special import ndtri
@@ -97,7 +99,7 @@ def beam_noise_mm(ranges_mm: np.ndarray) -> tuple[np.ndarray, float]:
     quantum = float(nz.min()) if nz.size else 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # beams that never return
-        k = np.nanpercentile(d, 25, axis=0) if d.shape[0] else np.full(ranges_mm.shape[1], np.nan)
+        k = np.nanpercentile(d, 25, axis=0, method="lower") if d.shape[0] else np.full(ranges_mm.shape[1], np.nan)
         p = np.sum(valid & (d <= k + 1e-6 * max(quantum, 1e-3)), axis=0) / np.sum(valid, axis=0)
         sigma = (k + quantum / 2) / (math.sqrt(2.0) * ndtri((1 + p) / 2))
     ok = np.isfinite(sigma)
@@ -130,44 +132,67 @@ def _longest_run_bounds(mask: np.ndarray) -> tuple[int, int]:
     return int(starts[k]), int(ends[k])
 
 
+def _median_noise_factor(n: int) -> float:
+    """``f``: one reading against the median of ``n`` readings differs with ``sqrt(1 + c)``
+    times the noise of one reading (``c`` = 1 for one reading, 1/2 for the mean of two,
+    ``pi / (2 n)`` for a median of more)."""
+    return math.sqrt(1.0 + (1.0 if n == 1 else 0.5 if n == 2 else math.pi / (2.0 * n)))
+
+
+def _nanmedian(x: np.ndarray) -> np.ndarray:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN beams stay NaN
+        return np.nanmedian(x, axis=0)
+
+
 def still_runs(stack: np.ndarray, differ, min_len: int) -> list[tuple[int, int]]:
     """Runs ``(first, last)`` of a sequence of readings ``stack`` (scans or frames' block
     means, in time order) during which nothing moved, of at least ``min_len`` readings.
 
     ``differ(x, ref, f)`` tells whether reading ``x`` differs from ``ref`` beyond ``f``
-    times the noise of one reading. Two steps: the sequence is cut wherever consecutive
-    readings differ (``f = sqrt(2)``, two noisy readings); each piece is then kept where
-    its readings agree with the piece's median (``f = sqrt(1 + pi / (2 n))``: one reading
-    against the median of ``n``): the longest agreeing run is a still run, the parts before
-    and after it are examined the same way (a slow drift the consecutive test misses
-    leaves the ends of a hold disagreeing with its median); a piece none of whose readings
-    agrees with its median (two holds joined by a slow move) is halved.
+    times the noise of one reading. Two steps:
+
+    1. growing: a run starts at a reading; its reference is the median of its first
+       readings (recomputed whenever the run's length doubles); the run ends at a reading
+       that differs from the one before it (``f = sqrt(2)``) or from the reference (``f``
+       of :func:`_median_noise_factor`), so a slow drift that no consecutive pair shows
+       adds up and ends it, and a run started in the slow end of a move ends where the
+       hold begins;
+    2. trimming: a run of ``min_len`` or more is kept where its readings agree with the
+       run's own median: the longest agreeing stretch is a still run and the parts before
+       and after it are examined the same way.
     """
     n = len(stack)
-    cuts = [0, *[j for j in range(1, n) if differ(stack[j], stack[j - 1], math.sqrt(2.0))], n]
+    grown: list[tuple[int, int]] = []
+    start, ref, n_ref = 0, stack[0] if n else None, 1
+    for j in range(1, n):
+        if differ(stack[j], stack[j - 1], math.sqrt(2.0)) or differ(
+                stack[j], ref, _median_noise_factor(n_ref)):
+            grown.append((start, j))
+            start, ref, n_ref = j, stack[j], 1
+        elif (j - start + 1) >= 2 * n_ref:
+            n_ref = j - start + 1
+            ref = _nanmedian(stack[start:j + 1])
+    if n:
+        grown.append((start, n))
     out: list[tuple[int, int]] = []
 
-    def refine(i: int, j: int) -> None:  # the piece [i, j)
+    def trim(i: int, j: int) -> None:  # the readings [i, j)
         if j - i < min_len:
             return
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN beams stay NaN
-            ref = np.nanmedian(stack[i:j], axis=0)
-        f = math.sqrt(1.0 + math.pi / (2.0 * (j - i)))
+        ref = _nanmedian(stack[i:j])
+        f = _median_noise_factor(j - i)
         agree = np.array([not differ(stack[q], ref, f) for q in range(i, j)])
         a, b = _longest_run_bounds(agree)
         if b - a == j - i:
             out.append((i, j - 1))
         elif b > a:
-            refine(i, i + a)
-            refine(i + a, i + b)
-            refine(i + b, j)
-        else:  # no reading agrees with the median: two or more poses, halved
-            refine(i, (i + j) // 2)
-            refine((i + j) // 2, j)
+            trim(i, i + a)
+            trim(i + a, i + b)
+            trim(i + b, j)
 
-    for i, j in zip(cuts, cuts[1:]):
-        refine(i, j)
+    for i, j in grown:
+        trim(i, j)
     return sorted(out)
 
 
@@ -193,7 +218,7 @@ def frame_noise(blocks: list[np.ndarray]) -> float:
     block differences (the median change removed), the median over the frame pairs."""
     if len(blocks) < 2:
         return 0.0
-    mads = [float(np.median(np.abs(_block_change(a, b)))) for a, b in zip(blocks, blocks[1:])]
+    mads = [float(np.median(np.abs(_block_change(a, b)))) for a, b in itertools.pairwise(blocks)]
     return 1.4826 * float(np.median(mads)) / math.sqrt(2.0)
 
 
@@ -264,27 +289,27 @@ def camera_from_info(msg, topic: str) -> tuple[dict | None, str | None]:
     D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, float).reshape(-1)
     model = str(msg.distortion_model).strip()
     size = [int(msg.width), int(msg.height)]
-    fix = ("calibrate the camera with `lidarcal intrinsics PHOTOS --out camera.json` and give "
-           "it to planes with --camera")
+    fix = ("calibrate the camera from chessboard photos with `lidarcal intrinsics` (it writes "
+           "camera.json) and give that to planes with --camera")
     if not (K[0, 0] > 0 and K[1, 1] > 0) or min(size) <= 0:
-        return None, f"{topic}: CameraInfo has no calibration (K {K.tolist()}, size {size}); " \
-                     f"camera.json not written; {fix}"
+        return None, (f"{topic}: CameraInfo has no calibration (K {K.tolist()}, size {size}); "
+                      f"camera.json not written; {fix}")
     if int(msg.binning_x) > 1 or int(msg.binning_y) > 1 or int(msg.roi.width) or int(msg.roi.height):
-        return None, f"{topic}: CameraInfo uses binning or a region of interest (K is for the " \
-                     f"full sensor); camera.json not written; {fix}"
+        return None, (f"{topic}: CameraInfo uses binning or a region of interest (K is for the "
+                      f"full sensor); camera.json not written; {fix}")
     if model in ("plumb_bob", "rational_polynomial") or (model == "" and not D.any()):
         if D.size > 5 and np.any(D[5:] != 0):
-            return None, f"{topic}: {model} distortion with k4..k6 = {D[5:8].tolist()}; " \
-                         "lidarcal's camera model has k1, k2, p1, p2, k3 only: camera.json " \
-                         f"not written; {fix} (5 coefficients)"
+            return None, (f"{topic}: {model} distortion with k4..k6 = {D[5:8].tolist()}; "
+                          "lidarcal's camera model has k1, k2, p1, p2, k3 only: camera.json "
+                          f"not written; {fix} (5 coefficients)")
         dist = np.zeros(5)
         dist[: min(D.size, 5)] = D[:5]
         return {"K": K.tolist(), "dist": dist.tolist(), "image_size": size,
                 "source": f"CameraInfo {topic} ({model or 'no distortion'})"}, None
     what = "equidistant (fisheye)" if model in ("equidistant", "fisheye") else repr(model)
-    return None, f"{topic}: CameraInfo distortion model {what} is not OpenCV's pinhole " \
-                 f"model that lidarcal uses (plumb_bob, rational_polynomial); camera.json not " \
-                 f"written; {fix} (or record rectified images with their CameraInfo)"
+    return None, (f"{topic}: CameraInfo distortion model {what} is not OpenCV's pinhole "
+                  f"model that lidarcal uses (plumb_bob, rational_polynomial); camera.json not "
+                  f"written; {fix} (or record rectified images with their CameraInfo)")
 
 
 # ----------------------------------------------------------------------------- import

@@ -156,7 +156,7 @@ def write_oneboard_bag(rig: OneBoardRig, bag: str | Path, *, storage: str = "ros
             base = pics[a].astype(np.float64)
         else:
             mix = (1 - u) * pics[a].astype(np.float64) + u * pics[b].astype(np.float64)
-            base = np.roll(mix, int(round(40 * math.sin(math.pi * u))), axis=1)
+            base = np.roll(mix, round(40 * math.sin(math.pi * u)), axis=1)
         return np.clip(np.rint(base + rng.normal(0, frame_noise, base.shape)), 0, 255).astype(np.uint8)
 
     def info_msg(tm: float):
@@ -164,11 +164,11 @@ def write_oneboard_bag(rig: OneBoardRig, bag: str | Path, *, storage: str = "ros
         d = {"plumb_bob": list(cam.dist[:5]), "rational_polynomial": [*cam.dist[:5], 0, 0, 0],
              "equidistant": [0.01, -0.002, 0.0, 0.0]}[distortion_model]
         P = np.hstack([cam.K, np.zeros((3, 1))])
-        fields = dict(header=_header(ts, tm, ros1, "camera"), height=cam.image_size[1],
-                      width=cam.image_size[0], distortion_model=distortion_model,
-                      binning_x=0, binning_y=0,
-                      roi=ts.types["sensor_msgs/msg/RegionOfInterest"](
-                          x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+        fields = {"header": _header(ts, tm, ros1, "camera"), "height": cam.image_size[1],
+                  "width": cam.image_size[0], "distortion_model": distortion_model,
+                  "binning_x": 0, "binning_y": 0,
+                  "roi": ts.types["sensor_msgs/msg/RegionOfInterest"](
+                      x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)}
         arrays = {"d": np.array(d, float), "k": cam.K.reshape(-1), "r": np.eye(3).reshape(-1),
                   "p": P.reshape(-1)}
         fields.update({(k.upper() if ros1 else k): v for k, v in arrays.items()})
