@@ -215,6 +215,17 @@ def test_options_of_the_two_modes_do_not_mix(tmp_path):
         import_views(bag, tmp_path / "o", min_scans=2)
 
 
+def test_truncated_and_junk_bags_are_one_line(bags, tmp_path):
+    data = bags["ros1_raw"][0].read_bytes()
+    (tmp_path / "cut.bag").write_bytes(data[: len(data) // 2])  # recording cut short
+    p = lidarcal("import", tmp_path / "cut.bag", "--views", "--out", tmp_path / "v")
+    _one_line_error(p, "cut.bag", "reindex")
+    (tmp_path / "junk.bag").write_bytes(b"not a bag")
+    p = lidarcal("import", tmp_path / "junk.bag", "--views", "--out", tmp_path / "v")
+    _one_line_error(p, "junk.bag", "cannot be read as a ROS 1 or ROS 2 bag")
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["cut.bag", "junk.bag"]
+
+
 # ----------------------------------------------------------------------------- pieces
 
 
