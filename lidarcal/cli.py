@@ -163,7 +163,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder (sqlite3, mcap)")
     s.add_argument("--rig", type=Path, default=None,
                    help="RIG.json (docs/ros-bags.md); required for a turntable bag")
-    s.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    s.add_argument("--out", type=Path, required=True,
+                   help="dataset folder to write (with --views: the folder of views)")
     s.add_argument("--views", action="store_true",
                    help="one-board recording: write the still moments as NAME.png + NAME.csv "
                         "view pairs for `lidarcal planes` (+ camera.json from CameraInfo)")
