@@ -243,10 +243,7 @@ class StillInterval:
     t_end: float
     scans: list[int]  # whole scans inside
     frames: list[int]  # frames inside
-
-    @property
-    def middle_frame(self) -> int:
-        return self.frames[0]  # set by still_intervals: the frame nearest the middle first
+    middle_frame: int  # the frame nearest the middle of the interval
 
 
 def still_intervals(scan_runs, scan_t0, scan_t1, frame_runs, frame_t,
@@ -268,8 +265,8 @@ def still_intervals(scan_runs, scan_t0, scan_t1, frame_runs, frame_t,
             frames = [q for q in range(a, b + 1) if lo <= frame_t[q] <= hi]
             if len(scans) >= min_scans and frames:
                 mid = 0.5 * (lo + hi)
-                frames.sort(key=lambda q: (abs(frame_t[q] - mid), q))
-                out.append(StillInterval(lo, hi, scans, frames))
+                out.append(StillInterval(lo, hi, scans, frames,
+                                         min(frames, key=lambda q: (abs(frame_t[q] - mid), q))))
             m += 1
     return sorted(out, key=lambda s: s.t_start)
 
@@ -453,7 +450,8 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
         raise DatasetError(bag, f"no still interval: {n_srun} still run(s) of >= {min_scans} "
                                 f"scans, {n_frun} still run(s) of >= 2 frames, none overlapping "
                                 f"with {min_scans} whole scans and a frame ({noise_text}); hold "
-                                "the board still for about a second at each view")
+                                "the board still at each view for about a second (at least "
+                                f"{min_scans} scans and two frames)")
     if len(intervals) < FEW_VIEWS:
         warn.append(f"only {len(intervals)} still interval(s): lidarcal planes needs at least 3 "
                     f"views with differently tilted boards and fixes the pose better with "
@@ -490,7 +488,8 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
             r = combine_scans([R[q].astype(np.float64) for q in iv.scans])
             (tmp / f"{names[k]}.csv").write_text(scan_csv_text(angles, r))
             views.append(ImportedView(names[k], float(fts[iv.middle_frame] - clock0),
-                                      iv.t_start - clock0, iv.t_end - clock0, len(iv.scans),
+                                      float(iv.t_start - clock0), float(iv.t_end - clock0),
+                                      len(iv.scans),
                                       len(iv.frames)))
         if camera is not None:
             write_json_atomic(tmp / "camera.json", camera)
