@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "(default: the only one)")
     s.add_argument("--camera-info-topic", help="--views: sensor_msgs/CameraInfo topic (default: "
                                                "the only one, or the image topic's)")
-    s.add_argument("--min-scans", type=int, default=5,
+    s.add_argument("--min-scans", type=int, default=None,
                    help="--views: a still interval holds at least this many scans (default 5)")
     s.add_argument("--scan-topic", help="sensor_msgs/LaserScan topic (default: the only one)")
     s.add_argument("--stripe-topic", help="dark stripe frames, Image or CompressedImage "
@@ -344,7 +344,8 @@ def _cmd_import(a: argparse.Namespace) -> int:
                  "--tolerance-deg": a.tolerance_deg, "--min-duration-s": a.min_duration_s}
     if a.views:
         return _cmd_import_views(a, [k for k, v in turntable.items() if v is not None])
-    views_only = {"--image-topic": a.image_topic, "--camera-info-topic": a.camera_info_topic}
+    views_only = {"--image-topic": a.image_topic, "--camera-info-topic": a.camera_info_topic,
+                  "--min-scans": a.min_scans}
     given = [k for k, v in views_only.items() if v is not None]
     if given:
         raise DatasetError(a.bag, f"{given[0]} is for a one-board recording: add --views")
@@ -375,7 +376,8 @@ def _cmd_import_views(a: argparse.Namespace, turntable_options: list[str]) -> in
         raise DatasetError(a.bag, f"{turntable_options[0]} is for a turntable bag, not with "
                                   "--views; leave it out")
     res = import_views(a.bag, a.out, scan_topic=a.scan_topic, image_topic=a.image_topic,
-                       camera_info_topic=a.camera_info_topic, min_scans=a.min_scans,
+                       camera_info_topic=a.camera_info_topic,
+                       min_scans=5 if a.min_scans is None else a.min_scans,
                        overwrite=a.overwrite, progress=not a.no_progress and sys.stderr.isatty())
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)

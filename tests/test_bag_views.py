@@ -211,6 +211,9 @@ def test_options_of_the_two_modes_do_not_mix(tmp_path):
     p = lidarcal("import", bag, "--rig", tmp_path / "RIG.json", "--image-topic", "/c",
                  "--out", tmp_path / "o")
     _one_line_error(p, "--image-topic is for a one-board recording")
+    p = lidarcal("import", bag, "--rig", tmp_path / "RIG.json", "--min-scans", "9",
+                 "--out", tmp_path / "o")
+    _one_line_error(p, "--min-scans is for a one-board recording")
     with pytest.raises(DatasetError, match="--min-scans must be >= 3"):
         import_views(bag, tmp_path / "o", min_scans=2)
 
