@@ -158,10 +158,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sub-pixel samples of the images' edges: grid (default; edges along the "
                         "pixel rows rendered up to 1/8 px off) or multi-jittered")
 
-    s = sub.add_parser("import", help="turn a ROS 1 / ROS 2 bag into a dataset folder")
+    s = sub.add_parser("import", help="turn a ROS 1 / ROS 2 bag into a dataset folder (or, "
+                                      "with --views, a folder of one-board views)")
     s.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder (sqlite3, mcap)")
-    s.add_argument("--rig", type=Path, required=True, help="RIG.json (docs/ros-bags.md)")
-    s.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    s.add_argument("--rig", type=Path, default=None,
+                   help="RIG.json (docs/ros-bags.md); required for a turntable bag")
+    s.add_argument("--out", type=Path, required=True,
+                   help="dataset folder to write (with --views: the folder of views)")
+    s.add_argument("--views", action="store_true",
+                   help="one-board recording: write the still moments as NAME.png + NAME.csv "
+                        "view pairs for `lidarcal planes` (+ camera.json from CameraInfo)")
+    s.add_argument("--image-topic", help="--views: the camera's Image or CompressedImage topic "
+                                         "(default: the only one)")
+    s.add_argument("--camera-info-topic", help="--views: sensor_msgs/CameraInfo topic (default: "
+                                               "the only one, or the image topic's)")
+    s.add_argument("--min-scans", type=int, default=None,
+                   help="--views: a still interval holds at least this many scans (default 5)")
     s.add_argument("--scan-topic", help="sensor_msgs/LaserScan topic (default: the only one)")
     s.add_argument("--stripe-topic", help="dark stripe frames, Image or CompressedImage "
                                           "(default: the image topic named *stripe*, or the "
@@ -327,6 +339,19 @@ def _cmd_import(a: argparse.Namespace) -> int:
     from .io.bag import import_bag
 
     check_output(a.out, "folder")
+    turntable = {"--rig": a.rig, "--stripe-topic": a.stripe_topic, "--board-topic": a.board_topic,
+                 "--board-image": a.board_image, "--angle-topic": a.angle_topic, "--joint": a.joint,
+                 "--tolerance-deg": a.tolerance_deg, "--min-duration-s": a.min_duration_s}
+    if a.views:
+        return _cmd_import_views(a, [k for k, v in turntable.items() if v is not None])
+    views_only = {"--image-topic": a.image_topic, "--camera-info-topic": a.camera_info_topic,
+                  "--min-scans": a.min_scans}
+    given = [k for k, v in views_only.items() if v is not None]
+    if given:
+        raise DatasetError(a.bag, f"{given[0]} is for a one-board recording: add --views")
+    if a.rig is None:
+        raise DatasetError(a.bag, "a turntable bag needs --rig RIG.json (docs/ros-bags.md); for "
+                                  "a one-board recording pass --views")
 
     res = import_bag(a.bag, a.rig, a.out, scan_topic=a.scan_topic, stripe_topic=a.stripe_topic,
                      board_topic=a.board_topic, angle_topic=a.angle_topic, joint=a.joint,
@@ -341,6 +366,26 @@ def _cmd_import(a: argparse.Namespace) -> int:
           f"{res.tolerance_deg:.3g} deg, min duration {res.min_duration_s:.3g} s); "
           f"{len(res.sweeps)} sweep(s)")
     print(f"wrote dataset {res.out}")
+    return 0
+
+
+def _cmd_import_views(a: argparse.Namespace, turntable_options: list[str]) -> int:
+    from .io.bag_views import import_views
+
+    if turntable_options:
+        raise DatasetError(a.bag, f"{turntable_options[0]} is for a turntable bag, not with "
+                                  "--views; leave it out")
+    res = import_views(a.bag, a.out, scan_topic=a.scan_topic, image_topic=a.image_topic,
+                       camera_info_topic=a.camera_info_topic,
+                       min_scans=5 if a.min_scans is None else a.min_scans,
+                       overwrite=a.overwrite, progress=not a.no_progress and sys.stderr.isatty())
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    print(f"{len(res.views)} still interval(s) -> {len(res.views)} views ({res.scan_runs} still "
+          f"run(s) of the scans, {res.frame_runs} of the frames; scan noise "
+          f"{res.scan_noise_mm:.3g} mm, frame noise {res.frame_noise:.3g} gray levels); "
+          f"camera.json {'written' if res.camera_written else 'not written'}")
+    print(f"wrote views {res.out}")
     return 0
 
 

@@ -38,6 +38,8 @@ TESTED_BY = {
     "report": "test_readme_command_block",
     "cloud": "test_cloud.py::test_cli_cloud_one_sweep_and_all",
     "import": "test_bag.py::test_ros1_raw_images_cli",
+    # a documented mode of a subcommand: its command lines run by their own test
+    "import --views": "test_bag_views.py::test_import_views_cli_then_planes",
     "check": "test_check.py::test_readme_own_rig_commands",
     "workbook": "test_workbook.py::test_workbook_runs_on_an_unseen_dataset_without_truth",
     "planes": "test_planes.py::test_readme_commands_run",
@@ -89,6 +91,15 @@ def test_every_documented_command_has_an_end_to_end_test():
     assert set(COMMANDS) <= set(TESTED_BY), sorted(set(COMMANDS) - set(TESTED_BY))
     for sub, test in TESTED_BY.items():
         assert _is_test(test), f"{sub}: {test} is not a test"
+
+
+def test_documented_modes_are_in_the_docs():
+    # a TESTED_BY entry "SUBCOMMAND --FLAG" names a mode some document shows on a command line
+    text = "\n".join(doc.read_text() for doc in documents())
+    for key in (k for k in TESTED_BY if " " in k):
+        sub, flag = key.split(" ", 1)
+        assert sub in COMMANDS, key
+        assert re.search(rf"lidarcal {sub}\b[^\n`]* {re.escape(flag)}\b", text), key
 
 
 def _is_test(ref: str) -> bool:

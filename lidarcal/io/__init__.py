@@ -6,6 +6,7 @@ nothing heavy; import the submodule you need).
 - :mod:`lidarcal.io.images`: image files (every way one can fail named); re-exported by
   :mod:`lidarcal.io.dataset`, as is :class:`DatasetError` (kept in :mod:`lidarcal.io.errors`).
 - :mod:`lidarcal.io.bag`: ROS 1 / ROS 2 bags (through rosbags) into a dataset folder.
+- :mod:`lidarcal.io.bag_views`: a one-board bag into photo + scan pairs (``import --views``).
 - :mod:`lidarcal.io.rig`: RIG.json, what a bag cannot hold.
 - :mod:`lidarcal.io.clouds`: point clouds out (PLY, PCD, VTP, CSV) and back in.
 - :mod:`lidarcal.io.pairs`: photo + scan pairs of the one-board calibration (``lidarcal planes``).
