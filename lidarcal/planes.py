@@ -391,6 +391,27 @@ class PlanesResult:
         }
 
 
+def _board_extent(bp: BoardPlane) -> tuple:
+    """``(R_b, T_b, lo, hi, grow)`` for the consensus (:func:`select_board_segments`): the printed
+    pattern's corners in the board frame (one square beyond the outer inner corners) and, for
+    the board's unknown margin, half the pattern's shorter side (the real TAPAS boards reach
+    1.6 squares beyond their pattern)."""
+    c, r = bp.board.inner_corners
+    sq = bp.board.square_mm
+    lo, hi = np.array([-sq, -sq]), np.array([c * sq, r * sq])
+    return bp.R, bp.T, lo, hi, 0.5 * float(np.min(hi - lo))
+
+
+def _share_off_board(view: ViewData, R: np.ndarray, T: np.ndarray) -> float:
+    """Share of a view's board returns that ``(R, T)`` maps outside the board's printed pattern
+    grown by the margin of :func:`_board_extent` (in the board frame of eq. 1)."""
+    Rb, Tb, lo, hi, grow = _board_extent(view.board)
+    p = view.points_mm
+    u = (np.column_stack([p, np.zeros(len(p))]) @ R.T + T - Tb) @ Rb[:, :2]
+    out = np.any((u < lo - grow) | (u > hi + grow), axis=1)
+    return float(np.mean(out)) if len(out) else 0.0
+
+
 def _lies_along_plane(view: ViewData, R: np.ndarray, T: np.ndarray, sigma_mm: float) -> bool:
     """A late view's gated returns are its board only if they run along the predicted plane:
     RMS within ``3 sigma + 1 mm`` and no trend across the run beyond ``3 sigma`` (a scan line
@@ -436,7 +457,7 @@ def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int 
         else:  # the corner set that fits the board model best
             v.board = min((board_plane(camera, c, b) for c, b in found), key=lambda bp: bp.sigma_px)
             v.candidates = line_segments(pr.angle_deg, pr.range_mm, range_noise_mm=sig,
-                                         min_points=min_points)[0]
+                                         min_points=min_points, steps=True)[0]
         views.append(v)
     return views
 
@@ -472,7 +493,7 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     gates = [max(5.0 * t, 5.0) for t in tot]  # a rigid hypothesis from five right views: ~1-2 t
     if len(sub) >= MIN_VIEWS_CONSENSUS:
         choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
-                                       gates, rng)
+                                       gates, rng, boards=[_board_extent(v.board) for v in sub])
     else:  # too few views to cross-check: the segment with most returns in each scan
         choice = [max(range(len(v.candidates)), key=lambda k: len(v.candidates[k].beams))
                   if v.candidates else None for v in sub]
@@ -529,6 +550,14 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
             if rms[k] > 3.0 * expect + 1.0:
                 warnings.append(f"{v.name}: board returns are {rms[k]:.1f} mm RMS from the board "
                                 f"plane, > 3x the expected {expect:.1f} mm; check this view")
+    for k, v in enumerate(views):
+        if used[k]:
+            off = _share_off_board(v, R, T)
+            if off > 0.1:
+                warnings.append(f"{v.name}: {100 * off:.0f} % of the returns taken as the board lie "
+                                "beside the board the camera sees, on a surface in line with it: "
+                                "the board cannot be told from the surface behind it (a range "
+                                "step below the noise); hold the board farther from the wall")
     if ref.noise_scale > 3.0:
         warnings.append(f"residuals are {ref.noise_scale:.1f}x the noise model (range noise and "
                         "corner noise); the sigmas are scaled by it, but check for a bent board "

@@ -132,9 +132,22 @@ def _rms_under(h: np.ndarray, m: _Moments) -> np.ndarray:
     return 1000.0 * np.sqrt(np.maximum(sse, 0.0) / m.n)
 
 
+def _outside_board(h: np.ndarray, centre_mm: np.ndarray, board: tuple) -> np.ndarray:
+    """How far (mm) a candidate's centroid, mapped into the camera by hypotheses ``h`` (K, 9),
+    lies in the board's plane outside its printed pattern grown by ``grow`` on every side;
+    ``board = (R_b, T_b, lo, hi, grow)``: board frame -> camera (eq. 1), the pattern's corners
+    ``lo``, ``hi`` in the board frame (mm)."""
+    Rb, Tb, lo, hi, grow = board
+    X = h[:, 0:3] * centre_mm[0] + h[:, 3:6] * centre_mm[1] + 1000.0 * h[:, 6:9]  # X = H (x, y, 1)
+    u = (X - Tb) @ Rb[:, :2]
+    mid, half = (lo + hi) / 2, (hi - lo) / 2 + grow
+    return np.linalg.norm(np.maximum(np.abs(u - mid) - half, 0.0), axis=1)
+
+
 def select_board_segments(candidates: list[list[LineSegment]], planes: list[Plane],
                           gates_mm: list[float], rng: np.random.Generator,
-                          hypotheses: int = 10000, max_candidates: int = 4) -> list[int | None]:
+                          hypotheses: int = 10000, max_candidates: int = 4,
+                          boards: list[tuple] | None = None) -> list[int | None]:
     """Which candidate segment of each view is the board: consensus of linear hypotheses.
 
     A hypothesis is the least-squares ``H`` of ``min(5, n)`` views with one candidate each
@@ -146,6 +159,12 @@ def select_board_segments(candidates: list[list[LineSegment]], planes: list[Plan
     view left out); views whose best candidate is beyond their gate get ``None``. Each view offers its ``max_candidates`` segments with the most
     returns (a calibration board is a large, near surface); nothing else is assumed about
     which segment is the board.
+
+    ``boards`` (per view ``(R_b, T_b, lo, hi, grow)``, see :func:`_outside_board`): a candidate
+    whose centroid the hypothesis maps outside the board's printed pattern grown by ``grow``
+    does not count for it. A wall a few cm behind every board is itself a consistent set of
+    planes (those of a pose shifted by the offset) and, without the board's noise, fits them
+    better; beside the board it is not on the board.
     """
     n = len(planes)
     keep = [sorted(range(len(c)), key=lambda k: -len(c[k].beams))[:max_candidates]
@@ -172,6 +191,10 @@ def select_board_segments(candidates: list[list[LineSegment]], planes: list[Plan
     choice = np.full((len(H), n), -1)
     for i in views:
         rms = np.stack([_rms_under(H, m) for m in mom[i]], axis=1)  # (K, candidates)
+        if boards is not None and boards[i] is not None:
+            for c, k in enumerate(keep[i]):
+                far = _outside_board(H, candidates[i][k].points.mean(0), boards[i]) > 0
+                rms[far, c] = np.inf
         j = np.argmin(rms, axis=1)
         r = rms[np.arange(len(H)), j] / gates_mm[i]
         cost += np.minimum(r, 1.0) ** 2  # MSAC: truncated quadratic, not an inlier count

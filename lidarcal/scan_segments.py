@@ -185,6 +185,30 @@ def _tls_sse_splits(p: np.ndarray, lo: int, hi: int) -> np.ndarray:
     return both[:len(k)] + both[len(k):]
 
 
+def _tls_sse_three(p: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """TLS sum of squared orthogonal residuals of ``p[:i] + p[i:j] + p[j:]`` for every pair
+    ``i < j`` leaving at least ``m`` points in each piece (prefix sums, all pairs at once).
+
+    Returns ``(sse, i, j)``, each shape (pairs,)."""
+    q = p - np.add.reduce(p) / len(p)
+    n = len(q)
+    x, y = q[:, 0], q[:, 1]
+    cs = np.zeros((5, n + 1))
+    np.cumsum(np.array([x, y, x * x, x * y, y * y]), axis=1, out=cs[:, 1:])
+    i, j = np.triu_indices(n + 1, k=m)
+    keep = (i >= m) & (j <= n - m)
+    i, j = i[keep], j[keep]
+
+    def sse(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        c = (hi - lo).astype(float)
+        sx, sy, sxx, sxy, syy = cs[:, hi] - cs[:, lo]
+        mx, my = sx / c, sy / c
+        a, b, d = sxx - c * mx * mx, sxy - c * mx * my, syy - c * my * my
+        return np.maximum(0.5 * (a + d) - np.sqrt(0.25 * (a - d) ** 2 + b * b), 0.0)
+
+    return sse(np.zeros_like(i), i) + sse(i, j) + sse(j, np.full_like(j, n)), i, j
+
+
 def _mad_scale(r: np.ndarray) -> float:
     """Robust scale of residuals: 1.4826 x median absolute deviation from their median."""
     return float(MAD_TO_SIGMA * median(np.abs(r - median(r)), overwrite=True))
@@ -203,6 +227,7 @@ class _PieceScales:
         self._fit: dict[tuple[int, int], tuple[Line2D, np.ndarray]] = {}
         self._one: dict[tuple[int, int], float] = {}
         self._two: dict[tuple[int, int, int], float] = {}
+        self._three: dict[tuple[int, int, int, int], float] = {}
 
     def residuals(self, a: int, b: int) -> np.ndarray:
         """Signed orthogonal residuals of ``p[a:b]`` to their TLS line."""
@@ -229,10 +254,17 @@ class _PieceScales:
                                                             self.residuals(k, b)]))
         return self._two[a, k, b]
 
+    def three(self, a: int, i: int, j: int, b: int) -> float:
+        """MAD scale of the pooled residuals of lines through ``p[a:i]``, ``p[i:j]``, ``p[j:b]``."""
+        if (a, i, j, b) not in self._three:
+            self._three[a, i, j, b] = _mad_scale(np.concatenate(
+                [self.residuals(a, i), self.residuals(i, j), self.residuals(j, b)]))
+        return self._three[a, i, j, b]
+
 
 def _split_into_lines(p: np.ndarray, sigma: float, min_points: int,
                       scales: _PieceScales | None = None, a: int = 0,
-                      b: int | None = None) -> list[tuple[int, int]]:
+                      b: int | None = None, steps: bool = False) -> list[tuple[int, int]]:
     """Top-down split of ordered points ``p[a:b]`` (all of ``p`` by default) into line pieces,
     as [start, end) ranges of ``p``.
 
@@ -243,6 +275,11 @@ def _split_into_lines(p: np.ndarray, sigma: float, min_points: int,
     along it (dark squares read farther, quantised or rippled real ranges)
     stays one piece, while a kink (the hinge, a mount) is split. ``scales``
     holds the pieces' line fits (shared with :func:`_merge_collinear`).
+
+    ``steps``: when no single cut halves the scale, the best cut in three is tried
+    (:func:`_step_cut`). A board held a few cm in front of a wall runs wall - board - wall
+    along almost one line: any single cut leaves one range step in a piece, two cuts take the
+    board out (a staircase of dark squares has many small steps, which no three lines halve).
     """
     scales = _PieceScales(p) if scales is None else scales
     b = len(p) if b is None else b
@@ -250,14 +287,46 @@ def _split_into_lines(p: np.ndarray, sigma: float, min_points: int,
     if n < 2 * min_points:
         return [(a, b)]
     scale = scales.one(a, b)
-    if scale <= 2.0 * sigma:
+    cut: tuple[int, ...] | None = None
+    if scale > 2.0 * sigma:
+        sse = _tls_sse_splits(p[a:b], min_points, n - min_points + 1)
+        k = a + min_points + int(np.argmin(sse))
+        if scales.two(a, k, b) <= _SPLIT_GAIN * scale:
+            cut = (k,)
+    if cut is None and steps and n >= 3 * min_points:
+        cut = _step_cut(p, sigma, min_points, scales, a, b, scale)
+    if cut is None:
         return [(a, b)]
-    sse = _tls_sse_splits(p[a:b], min_points, n - min_points + 1)
-    k = a + min_points + int(np.argmin(sse))
-    if scales.two(a, k, b) > _SPLIT_GAIN * scale:
-        return [(a, b)]
-    return (_split_into_lines(p, sigma, min_points, scales, a, k)
-            + _split_into_lines(p, sigma, min_points, scales, k, b))
+    ends = (a, *cut, b)
+    return [piece for lo, hi in zip(ends[:-1], ends[1:])
+            for piece in _split_into_lines(p, sigma, min_points, scales, lo, hi, steps)]
+
+
+#: A range step this many range-noise sigmas between a piece and the line of its neighbours
+#: makes it a surface of its own (:func:`_step_cut`).
+STEP_SIGMAS = 6.0
+
+
+def _step_cut(p: np.ndarray, sigma: float, min_points: int, scales: _PieceScales, a: int,
+              b: int, scale: float) -> tuple[int, int] | None:
+    """The best cut of ``p[a:b]`` in three (least three-line TLS error over every pair of
+    breakpoints, :func:`_tls_sse_three`) when its middle piece is a surface of its own: either
+    the three lines halve the robust residual scale (the test of :func:`_split_into_lines`), or
+    the middle piece lies at least :data:`STEP_SIGMAS` noise sigmas off the line through the
+    outer two and the three lines at least quarter the sum of squares of one (a board a few cm
+    in front of a wall on a small share of the piece, which the MAD scale does not see)."""
+    sse3, ii, jj = _tls_sse_three(p[a:b], min_points)
+    best = int(np.argmin(sse3))
+    i, j = a + int(ii[best]), a + int(jj[best])
+    if scale > 2.0 * sigma and scales.three(a, i, j, b) <= _SPLIT_GAIN * scale:
+        return i, j
+    sse1 = float(np.sum(scales.residuals(a, b) ** 2))
+    if sse3[best] > 0.25 * sse1:
+        return None
+    outer = fit_line_2d(np.concatenate([p[a:i], p[j:b]]))
+    if abs(float(np.mean(outer.distance(p[i:j])))) < STEP_SIGMAS * sigma:
+        return None
+    return i, j
 
 
 def _merge_collinear(p: np.ndarray, pieces: list[tuple[int, int]],
@@ -498,7 +567,7 @@ def _component_labels(edge: np.ndarray) -> np.ndarray:
 
 def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
                   range_noise_mm: float | None = None, min_points: int = MIN_POINTS,
-                  max_gap: int = 4) -> tuple[list[LineSegment], float]:
+                  max_gap: int = 4, steps: bool = False) -> tuple[list[LineSegment], float]:
     """The straight pieces of one scan, in beam order, and the range noise used (mm).
 
     Steps (1)-(3) of :func:`lidarcal.scan.split_v`, usable for any board (a flat one too):
@@ -512,17 +581,19 @@ def line_segments(angle_deg: np.ndarray, range_mm: np.ndarray, *,
     the surface). Pieces with fewer than ``min_points`` inliers are dropped.
 
     The noise is ``range_noise_mm`` if given, else :func:`effective_range_noise`
-    (second differences plus the quantisation's ``q^2 / 12``).
+    (second differences plus the quantisation's ``q^2 / 12``). ``steps``: also cut a piece in
+    three where one surface is offset from the line of its neighbours (a board a few cm in
+    front of a wall, see :func:`_split_into_lines`); the V pipeline leaves it off.
     """
     ang = np.asarray(angle_deg, dtype=float)
     pts = scan_points(ang, range_mm)
     return _line_segments(ang, pts, np.hypot(pts[:, 0], pts[:, 1]), range_noise_mm, min_points,
-                          max_gap)
+                          max_gap, steps)
 
 
 def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
                    range_noise_mm: float | None, min_points: int,
-                   max_gap: int) -> tuple[list[LineSegment], float]:
+                   max_gap: int, steps: bool = False) -> tuple[list[LineSegment], float]:
     """:func:`line_segments` of a scan's beam angles (deg), eq. (6) points and ranges (mm)."""
     if np.any(np.diff(ang) <= 0):
         raise ValueError("scan angles must be strictly ascending (beam order)")
@@ -542,7 +613,8 @@ def _line_segments(ang: np.ndarray, pts: np.ndarray, rho: np.ndarray,
         beams = valid_idx[labels == lab]
         p = pts[beams]
         scales = _PieceScales(p)
-        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales), scales):
+        for a, b in _merge_collinear(p, _split_into_lines(p, sigma, min_points, scales,
+                                                            steps=steps), scales):
             pieces.append((int(lab), beams[a:b], p[a:b], scales.fitted(a, b)))
     segments: list[LineSegment] = []
     ransac = _ransac_masks([q for _, _, q, _ in pieces], sigma, rng)

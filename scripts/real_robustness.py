@@ -6,7 +6,7 @@ difference in the unperturbed fit's sigmas (Mahalanobis over its 6x6 covariance,
 the views used, the RMS and the warnings; or the one-line error. A perturbed result is fine when
 it is within ~3 sigma of the unperturbed one, or fails / warns honestly.
 
-    .venv/bin/python scripts/real_robustness.py [--only NAME ...]
+    .venv/bin/python scripts/real_robustness.py [--only NAME ...] [--wall-mm 40 80 150]
 """
 
 from __future__ import annotations
@@ -71,8 +71,9 @@ def _board_run(ang, rng, full, name):
     return v.beams
 
 
-def perturbations(full) -> dict:
-    """name -> function(dst folder) that perturbs the copied views there."""
+def perturbations(full, walls_mm: tuple[float, ...] = (40.0,)) -> dict:
+    """name -> function(dst folder) that perturbs the copied views there; one wall perturbation
+    per distance (mm) behind the board in ``walls_mm``."""
     rs = np.random.default_rng(0)
 
     def jpeg(d):
@@ -135,20 +136,20 @@ def perturbations(full) -> dict:
         _scans(d, lambda p, a, r, n: _write_scan(p, a, [int(x) for x in r], {
             "intensity": [str(int(v)) for v in rs.integers(500, 4000, len(r))]}))
 
-    def wall_behind(d):  # a wall 40 mm behind the board, filling the scan beside it
+    def wall_behind(d, dist_mm):  # a wall dist_mm behind the board, filling the scan beside it
         def f(p, a, r, n):
             b = _board_run(a, r, full, n)
             r = r.astype(float).copy()
             lo, hi = b.min(), b.max()
             sl = slice(max(lo - 120, 0), lo)
             sr = slice(hi + 1, min(hi + 121, len(r)))
-            # the board's line extended, 40 mm farther
+            # the board's line extended, dist_mm farther
             th = np.radians(a)
             pts = np.column_stack([r[b] * np.cos(th[b]), r[b] * np.sin(th[b])])
             c = pts.mean(0)
             u = np.linalg.svd(pts - c)[2][0]
             nrm = np.array([-u[1], u[0]])
-            off = nrm @ c + 40 * np.sign(nrm @ c)
+            off = nrm @ c + dist_mm * np.sign(nrm @ c)
             for s in (sl, sr):
                 dirs = np.column_stack([np.cos(th[s]), np.sin(th[s])])
                 r[s] = np.rint(off / (dirs @ nrm))
@@ -170,15 +171,18 @@ def perturbations(full) -> dict:
             _write_scan(p, a, [int(x) if np.isfinite(x) and x > 0 else 0 for x in r])
         _scans(d, f)
 
+    walls = {f"wall_{w:g}mm_behind": (lambda d, w=w: wall_behind(d, w)) for w in walls_mm}
     return {"jpeg70": jpeg, "rotated180": rot180, "gamma": gamma, "light": light,
             "marker": marker, "upscaled2x": upscale, "decimated0.5deg": decimate,
             "quantised10mm": quantise10, "nan_inf_0": nonfinite, "intensity_column": intensity,
-            "wall_40mm_behind": wall_behind, "clutter_0.7m": clutter}
+            **walls, "clutter_0.7m": clutter}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--wall-mm", nargs="*", type=float, default=[40.0],
+                    help="distances (mm) of the wall behind the board, one perturbation each")
     a = ap.parse_args(argv)
     board = BoardSpec((8, 5), 100.0)
     t0 = time.process_time()
@@ -190,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
           f"sigma T {np.round(sd[3:], 1)} mm, rot {np.round(np.degrees(sd[:3]), 2)} deg")
     print(f"{'perturbation':18s} {'used':>4s} {'RMS':>5s} {'|dT|':>6s} {'drot':>5s} "
           f"{'max|d|/sig':>10s} {'mahal':>6s}  warnings / error")
-    for name, fn in perturbations(full).items():
+    for name, fn in perturbations(full, tuple(a.wall_mm)).items():
         if a.only and name not in a.only:
             continue
         with tempfile.TemporaryDirectory() as tmp:

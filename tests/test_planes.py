@@ -373,3 +373,78 @@ def test_planes_without_a_board_is_one_line_and_exit_2(tmp_path):
     (folder / "board.json").write_text('{"inner_corners": [8, 5], "square_mm": -1}')
     with pytest.raises(DatasetError, match="square_mm"):
         board_spec(folder)
+
+
+# ---------------------------------------------------------------------------
+# a board held a few cm in front of a wall (the scan runs wall - board - wall)
+
+def _wall_behind(view, dist_mm: float):
+    """A copy of a real view whose scan beside the board (120 beams each side) is a wall
+    ``dist_mm`` behind the board's line, ranges in integer mm (as scripts/real_robustness.py)."""
+    import copy
+
+    v = copy.copy(view)
+    b = view.beams
+    r = view.range_mm.astype(float).copy()
+    th = np.radians(view.angle_deg)
+    pts = view.points_mm
+    c = pts.mean(0)
+    u = np.linalg.svd(pts - c)[2][0]
+    nrm = np.array([-u[1], u[0]])
+    off = nrm @ c + dist_mm * np.sign(nrm @ c)
+    for s in (slice(max(b.min() - 120, 0), b.min()), slice(b.max() + 1, b.max() + 121)):
+        r[s] = np.rint(off / (np.column_stack([np.cos(th[s]), np.sin(th[s])]) @ nrm))
+    v.range_mm = r
+    v.candidates = line_segments(v.angle_deg, r, range_noise_mm=local_line_noise(v.angle_deg, r),
+                                 steps=True)[0]
+    v.beams = np.zeros(0, int)
+    return v
+
+
+@pytest.mark.parametrize("dist_mm", [40.0, 150.0])
+def test_real_board_in_front_of_a_wall_is_cut_out_at_the_steps(tapas, dist_mm):
+    # the wall beside the board is itself a consistent set of planes (the boards' shifted by
+    # dist_mm) and fits them better than the noisy board; without the steps cut and the board's
+    # extent in the consensus, views 00 and 05 were dropped and the pose 78 mm / 10 sigma off
+    from lidarcal.degeneracy import pose_difference
+
+    res = calibrate_planes([_wall_behind(v, dist_mm) for v in tapas.views])
+    assert all(res.used)
+    for v, w in zip(tapas.views, res.views):  # the board's returns, not the wall's
+        assert len(np.intersect1d(v.beams, w.beams)) > 0.9 * len(v.beams)
+    d6 = pose_difference(res.R, res.T, tapas.R, tapas.T)
+    sd = np.sqrt(np.diag(tapas.uncertainty.covariance))
+    # measured: 0.6 mm, at most 0.1 sigma (of the unperturbed fit) for 40 and 150 mm
+    assert np.all(np.abs(d6) <= 0.5 * sd), np.abs(d6) / sd
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_simulated_board_in_front_of_a_wall_recovers_the_truth(seed):
+    # every view's board 40 mm in front of a wall parallel to it (3 mm range noise: a 13 sigma
+    # step); the tolerance is 4x the fit's own 1-sigma, as for the views without a wall
+    rig = simulate_oneboard(seed, 8, wall_behind_mm=40.0)
+    views = views_for_planes(rig)
+    for v, t in zip(views, rig.views):  # the segmenter cuts the board out of the wall
+        best = max(v.candidates, key=lambda s: np.count_nonzero(t.on_board[s.beams]))
+        assert np.mean(t.on_board[best.beams]) > 0.97
+    res = calibrate_planes(views)
+    assert all(res.used)
+    d_rot, d_t = _errors(res, rig)
+    sig_r = np.array(res.uncertainty.rotation_deg, float)
+    sig_t = np.array(res.uncertainty.translation_mm, float)
+    assert np.all(np.abs(d_rot) <= 4 * sig_r), (d_rot, sig_r)
+    assert np.all(np.abs(d_t) <= 4 * sig_t), (d_t, sig_t)
+
+
+def test_a_wall_closer_than_the_noise_behind_the_board_is_named():
+    # a wall 2 mm behind every board (range noise 3 mm): no step to cut at; the views whose
+    # board segment runs on along the wall say so by name (measured 68-74 % of their returns
+    # beside the board; the other four views are dropped, the pose stays within 1.7 sigma)
+    rig = simulate_oneboard(0, 8, wall_behind_mm=2.0)
+    res = calibrate_planes(views_for_planes(rig))
+    named = [w for w in res.warnings if "cannot be told from the surface behind it" in w]
+    assert named and all(w[:2] in {v.name for v, u in zip(res.views, res.used) if u}
+                         for w in named)
+    d_rot, d_t = _errors(res, rig)
+    assert np.all(np.abs(d_rot) <= 4 * np.array(res.uncertainty.rotation_deg, float))
+    assert np.all(np.abs(d_t) <= 4 * np.array(res.uncertainty.translation_mm, float))

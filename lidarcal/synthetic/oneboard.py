@@ -39,6 +39,7 @@ class OneBoardView:
     angle_deg: np.ndarray
     range_mm: np.ndarray  # NaN = no return
     on_board: np.ndarray  # bool per beam
+    extra: tuple = ()  # surfaces of this view only (a wall behind the board)
 
 
 @dataclass(frozen=True)
@@ -70,8 +71,13 @@ def default_camera() -> CameraModel:
 def simulate_oneboard(seed: int, n_views: int = 8, *, degenerate: str | None = None,
                       range_noise_mm: float = 3.0, corner_noise_px: float = 0.2,
                       quantise: bool = True, board: BoardSpec | None = None,
-                      margin_mm: float = 60.0, camera: CameraModel | None = None) -> OneBoardRig:
-    """Simulate ``n_views`` one-board views with known LiDAR pose (see the module docstring)."""
+                      margin_mm: float = 60.0, camera: CameraModel | None = None,
+                      wall_behind_mm: float | None = None) -> OneBoardRig:
+    """Simulate ``n_views`` one-board views with known LiDAR pose (see the module docstring).
+
+    ``wall_behind_mm``: in every view a wall parallel to the board, this far behind it (a board
+    held in front of a wall: the scan runs wall - board - wall with a small range step at the
+    board's edges); the random draws are those without it."""
     if degenerate not in (None, "vertical", "parallel"):
         raise ValueError(f"degenerate must be None, 'vertical' or 'parallel', got {degenerate!r}")
     from ..camera import project_points
@@ -132,7 +138,9 @@ def simulate_oneboard(seed: int, n_views: int = 8, *, degenerate: str | None = N
         corners = project_points(cam, obj @ board_R.T + board_T)
         corners = corners + rng.normal(0, corner_noise_px, corners.shape)
         stand = Cylinder(rect.point(W / 2, H), e_v, 20.0, 0.0, 2000.0)
-        surfaces = [rect, stand, *statics]
+        extra = () if wall_behind_mm is None else (
+            InfinitePlane(n, float(n @ P) - wall_behind_mm),)  # n faces the camera
+        surfaces = [rect, stand, *extra, *statics]
         t, idx = trace(surfaces, dirs, T[None])
         rng_mm = t + rng.normal(0, range_noise_mm, len(t))
         if quantise:
@@ -142,7 +150,7 @@ def simulate_oneboard(seed: int, n_views: int = 8, *, degenerate: str | None = N
         if on.sum() < 20:
             continue
         views.append(OneBoardView(f"{len(views):02d}", board_R, board_T, rect, corners, angles,
-                                  rng_mm, on))
+                                  rng_mm, on, extra))
     return OneBoardRig(cam, board, R, T, range_noise_mm, corner_noise_px, views, statics)
 
 
@@ -157,7 +165,7 @@ def views_for_planes(rig: OneBoardRig):
         sig = local_line_noise(v.angle_deg, v.range_mm)
         vd = ViewData(v.name, board_plane(rig.camera, v.corners_px, rig.board), v.angle_deg,
                       v.range_mm, sig)
-        vd.candidates = line_segments(v.angle_deg, v.range_mm, range_noise_mm=sig)[0]
+        vd.candidates = line_segments(v.angle_deg, v.range_mm, range_noise_mm=sig, steps=True)[0]
         out.append(vd)
     return out
 
@@ -172,7 +180,7 @@ def render_photo(rig: OneBoardRig, view: OneBoardView, seed: int = 0) -> np.ndar
     rays = RayMap.build(rig.camera.K, rig.camera.dist, rig.camera.image_size)
     stand = Cylinder(view.rect.point(view.rect.width / 2, view.rect.height), view.rect.e_v, 20.0,
                      0.0, 2000.0)
-    sv = render_view(rays, [view.rect, stand, *rig.surfaces], albedo_table(cfg, "bright"),
+    sv = render_view(rays, [view.rect, stand, *view.extra, *rig.surfaces], albedo_table(cfg, "bright"),
                      cfg.supersample)
     return expose_bright(sv.albedo, cfg, np.random.default_rng(seed))
 
