@@ -16,6 +16,7 @@ edges). Beams are in ascending angle order. :mod:`lidarcal.scan` re-exports the 
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -298,7 +299,7 @@ def _split_into_lines(p: np.ndarray, sigma: float, min_points: int,
     if cut is None:
         return [(a, b)]
     ends = (a, *cut, b)
-    return [piece for lo, hi in zip(ends[:-1], ends[1:])
+    return [piece for lo, hi in itertools.pairwise(ends)
             for piece in _split_into_lines(p, sigma, min_points, scales, lo, hi, steps)]
 
 

@@ -105,9 +105,9 @@ def test_range_weighted_v_fit_reaches_the_bound_where_the_orthogonal_fit_does_no
     m2 = []
     for _ in range(300):
         q1, q2 = _v_scan(rng, E, u, 300.0, 0.25, sigma)
-        for w in err:
+        for w, errs in err.items():
             ll = fit_v_lines(q1, q2, alpha, weighting=w)
-            err[w].append(_origin_in_v(ll.E, ll.l1) - o_true)
+            errs.append(_origin_in_v(ll.E, ll.l1) - o_true)
             if w == "range":
                 d = ll.E - ll0.E
                 m2.append(d @ np.linalg.solve(ll.E_cov, d))
