@@ -47,23 +47,31 @@ def _origin_in_v(E: np.ndarray, l1: np.ndarray) -> np.ndarray:
     return np.array([-E @ l1, -E @ np.array([-l1[1], l1[0]])])
 
 
+def _v_case(alpha_deg: float, turn_deg: float, sigma: float):
+    """A V 820 mm away (300 mm boards, 0.25 deg beams) opening ``alpha_deg``, its bisector
+    turned ``turn_deg`` from facing the LiDAR: the beams' directions ``u`` per board, the
+    noise-free fit ``ll0``, the Cramer-Rao bound at ``sigma`` and the true centre seen from
+    the V."""
+    alpha = np.radians(alpha_deg)
+    E = np.array([820.0, 25.0])
+    bis = np.radians(180.0 + turn_deg)
+    u = (np.array([np.cos(bis - alpha / 2), np.sin(bis - alpha / 2)]),
+         np.array([np.cos(bis + alpha / 2), np.sin(bis + alpha / 2)]))
+    p1, p2 = _v_scan(np.random.default_rng(0), E, u, 300.0, 0.25, 0.0)
+    ll0 = fit_v_lines(p1, p2, alpha)
+    bound = v_fit_crlb(p1, p2, ll0.line1.normal, (ll0.line1.offset, ll0.line2.offset), alpha,
+                       ll0.sign, sigma)
+    return alpha, E, u, ll0, bound, _origin_in_v(ll0.E, ll0.l1)
+
+
 def test_v_fit_reaches_the_cramer_rao_bound():
     """The constrained fit of eqs. (7)-(12) is efficient: over 400 noisy scans of a V like the
     wide rig's (2 mm range noise, 0.25 deg steps, 800 mm away), the scatter of its line angle
     and of the LiDAR centre seen from the V match the bound (within the Monte Carlo error,
     ~3.5 % of a standard deviation from 400 trials)."""
     rng = np.random.default_rng(5)
-    alpha = np.radians(115.0)
-    E = np.array([820.0, 25.0])
-    bis = np.radians(180.0 + 4.0)  # the V opens towards the LiDAR
-    u = (np.array([np.cos(bis - alpha / 2), np.sin(bis - alpha / 2)]),
-         np.array([np.cos(bis + alpha / 2), np.sin(bis + alpha / 2)]))
     sigma = 2.0
-    p1, p2 = _v_scan(np.random.default_rng(0), E, u, 300.0, 0.25, 0.0)
-    ll0 = fit_v_lines(p1, p2, alpha)
-    bound = v_fit_crlb(p1, p2, ll0.line1.normal, (ll0.line1.offset, ll0.line2.offset), alpha,
-                       ll0.sign, sigma)
-    o_true = _origin_in_v(ll0.E, ll0.l1)
+    alpha, E, u, ll0, bound, o_true = _v_case(115.0, 4.0, sigma)  # opens towards the LiDAR
     phi, o = [], []
     for _ in range(400):
         q1, q2 = _v_scan(rng, E, u, 300.0, 0.25, sigma)
@@ -90,17 +98,8 @@ def test_range_weighted_v_fit_reaches_the_bound_where_the_orthogonal_fit_does_no
     range-weighted fit's E covariance is honest (mean squared Mahalanobis distance ~2, the
     dimension of E)."""
     rng = np.random.default_rng(int(turn_deg))
-    alpha = np.radians(90.0)
-    E = np.array([820.0, 25.0])
-    bis = np.radians(180.0 + turn_deg)
-    u = (np.array([np.cos(bis - alpha / 2), np.sin(bis - alpha / 2)]),
-         np.array([np.cos(bis + alpha / 2), np.sin(bis + alpha / 2)]))
     sigma = 2.0
-    p1, p2 = _v_scan(np.random.default_rng(0), E, u, 300.0, 0.25, 0.0)
-    ll0 = fit_v_lines(p1, p2, alpha)
-    bound = v_fit_crlb(p1, p2, ll0.line1.normal, (ll0.line1.offset, ll0.line2.offset), alpha,
-                       ll0.sign, sigma)
-    o_true = _origin_in_v(ll0.E, ll0.l1)
+    alpha, E, u, ll0, bound, o_true = _v_case(90.0, turn_deg, sigma)
     err = {"range": [], "orthogonal": []}
     m2 = []
     for _ in range(300):

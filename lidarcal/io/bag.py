@@ -410,6 +410,13 @@ def open_bag(path: Path):
     return reader
 
 
+def unreadable_bag(bag: Path, e: Exception) -> DatasetError:
+    """The one-line error for a bag the reader gave up on (one of :func:`_reader_errors`)."""
+    msg = " ".join(str(e).split()) or type(e).__name__
+    return DatasetError(bag, f"cannot be read to the end ({msg}); the bag may be truncated "
+                             "or corrupt: reindex it (rosbag reindex / ros2 bag reindex)")
+
+
 def _reader_errors() -> tuple[type[Exception], ...]:
     from rosbags.highlevel import AnyReaderError
     from rosbags.rosbag1 import ReaderError as ReaderError1
@@ -480,9 +487,7 @@ def import_bag(bag: str | os.PathLike, rig: str | os.PathLike, out: str | os.Pat
         return _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image,
                        tolerance_deg, min_duration_s, frame_guard_s, overwrite, progress)
     except _reader_errors() as e:
-        msg = " ".join(str(e).split()) or type(e).__name__
-        raise DatasetError(bag, f"cannot be read to the end ({msg}); the bag may be truncated "
-                                "or corrupt: reindex it (rosbag reindex / ros2 bag reindex)") from None
+        raise unreadable_bag(bag, e) from None
     finally:
         reader.close()
 

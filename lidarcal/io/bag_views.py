@@ -64,6 +64,7 @@ from .bag import (
     pick_topic,
     scan_csv_text,
     scan_from_msg,
+    unreadable_bag,
 )
 from .bag_frames import image_from_msg
 from .dataset import DatasetError, write_json_atomic
@@ -360,9 +361,7 @@ def import_views(bag: str | os.PathLike, out: str | os.PathLike, *,
                                            prefer=ns.lower(), required=False)
         return _import_views(reader, bag, out, topics, min_scans, overwrite, progress)
     except _reader_errors() as e:
-        msg = " ".join(str(e).split()) or type(e).__name__
-        raise DatasetError(bag, f"cannot be read to the end ({msg}); the bag may be truncated "
-                                "or corrupt: reindex it (rosbag reindex / ros2 bag reindex)") from None
+        raise unreadable_bag(bag, e) from None
     finally:
         reader.close()
 
