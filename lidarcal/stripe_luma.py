@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import sparse
+from scipy.ndimage import map_coordinates
 
 from .camera import backproject_to_plane, project_points
 from .geometry import MAD_TO_SIGMA
@@ -94,16 +95,11 @@ def _corner_residual_field(camera: CameraModel, view, board: BoardSpec) -> np.nd
 
 
 def _bilinear(grid: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``grid`` (rows, cols, 2) at fractional corner indices (u: column, v: row), clamped."""
-    r, c = grid.shape[:2]
-    u = np.clip(u, 0, c - 1)
-    v = np.clip(v, 0, r - 1)
-    i0 = np.minimum(np.floor(u).astype(int), max(c - 2, 0))
-    j0 = np.minimum(np.floor(v).astype(int), max(r - 2, 0))
-    i1, j1 = np.minimum(i0 + 1, c - 1), np.minimum(j0 + 1, r - 1)
-    fu, fv = (u - i0)[:, None], (v - j0)[:, None]
-    return ((1 - fu) * (1 - fv) * grid[j0, i0] + fu * (1 - fv) * grid[j0, i1]
-            + (1 - fu) * fv * grid[j1, i0] + fu * fv * grid[j1, i1])
+    """``grid`` (rows, cols, 2) at fractional corner indices (u: column, v: row), bilinear,
+    clamped to the grid (``scipy.ndimage.map_coordinates``, order 1, mode nearest)."""
+    at = np.vstack([np.asarray(v, float), np.asarray(u, float)])
+    return np.column_stack([map_coordinates(grid[..., k], at, order=1, mode="nearest")
+                            for k in range(grid.shape[2])])
 
 
 def board_coordinates(camera: CameraModel, view, board: BoardSpec, px: np.ndarray

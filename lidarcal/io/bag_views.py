@@ -110,10 +110,8 @@ def beam_noise_mm(ranges_mm: np.ndarray) -> tuple[np.ndarray, float]:
 
 def longest_run(mask: np.ndarray) -> int:
     """The length of the longest run of True in a 1-D boolean array."""
-    if not mask.any():
-        return 0
-    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return int((np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)).max())
+    a, b = _longest_run_bounds(mask)
+    return b - a
 
 
 def scans_differ(a: np.ndarray, b: np.ndarray, threshold_mm: np.ndarray) -> bool:
