@@ -87,6 +87,10 @@ PRIOR_K_MIXED = (0.0, 0.3)
 MIXED_SHARE_MIN = 0.6
 #: a reference that implies an offset outside this range (beam spacings) is suspect
 PLAUSIBLE_K = (-0.5, 1.5)
+#: wide spot, no reference: rim offset prior in the spot's sigmas (module docstring, "Wide spot")
+PRIOR_SPOT_SIGMAS = (0.0, 0.674)
+#: a spot whose sigma across the beam exceeds this many beam spacings is wide
+WIDE_SPOT_SPACINGS = 1.0
 
 
 @dataclass(frozen=True)
@@ -111,6 +115,23 @@ class EdgeModel:
         echo = "unknown" if mixed_share is None or not np.isfinite(mixed_share) else \
             ("mixed" if mixed else "first-echo")
         return EdgeModel(0.5 * (lo + hi), (hi - lo) / np.sqrt(12.0), "prior", echo=echo)
+
+    def for_disc(self, spot_sigma_spacings: float, zone_spacings: float = 0.0) -> EdgeModel:
+        """The prior widened to one disc's beam spot (module docstring, "Wide spot"): a spot
+        sigma measured in its mixed returns above :data:`WIDE_SPOT_SPACINGS` beam spacings
+        makes ``k`` uniform on :data:`PRIOR_SPOT_SIGMAS` x that sigma; no spot measured (no
+        mixed returns) but the calibration's scan edge zones ``zone_spacings`` returns deep
+        (a wide spot at the V) makes the upper end that depth. References: unchanged."""
+        if self.source != "prior":
+            return self
+        lo, hi = 0.5 * (2.0 * self.k - np.sqrt(12.0) * self.k_sigma), 0.5 * (2.0 * self.k + np.sqrt(12.0) * self.k_sigma)
+        if np.isfinite(spot_sigma_spacings) and spot_sigma_spacings > WIDE_SPOT_SPACINGS:
+            lo, hi = (v * spot_sigma_spacings for v in PRIOR_SPOT_SIGMAS)
+        elif not np.isfinite(spot_sigma_spacings) and zone_spacings > hi:
+            hi = float(zone_spacings)
+        else:
+            return self
+        return replace(self, k=0.5 * (lo + hi), k_sigma=(hi - lo) / np.sqrt(12.0))
 
     def apply(self, diameter_half_mm: float, fit_sigma_mm: float, spacing_mm: float) -> tuple[float, float]:
         """Corrected diameter and its 1-sigma (mm): ``D_half - 2 k u s``, module docstring;
@@ -315,7 +336,8 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                                             / np.linalg.norm(r.center_mm - origin)),
                      "center_mm": r.center_mm.tolist(), "normal": r.normal.tolist(),
                      "points": int(r.points), "naive_diameter_mm": r.naive_diameter_mm,
-                     "mixed_share": mixed_share(r.info)})
+                     "mixed_share": mixed_share(r.info),
+                     "spot_sigma_mm": float(r.info.get("spot_sigma_mm", np.nan))})
     if refs:
         sel = [row for row in rows if row["reference"]]
         edge = fit_edge_model([row["name"] for row in sel],
@@ -330,9 +352,14 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
     sens = offset_sensitivity([row["diameter_half_mm"] for row in rows], [row["range_mm"] for row in rows],
                               [row["edge_spacing_mm"] for row in rows], [row["reference"] for row in rows],
                               [row["cos_incidence"] for row in rows])
-    out = []
+    zone = _edge_zone_returns(calibration)
+    out, wide = [], []
     for row, c in zip(rows, sens):
-        d, s = edge.apply(row["diameter_half_mm"], row["fit_sigma_mm"], row["edge_spacing_mm"])
+        spot_u = row["spot_sigma_mm"] / row["beam_spacing_mm"]
+        e = edge.for_disc(spot_u, zone)
+        if e is not edge:
+            wide.append((row["name"], spot_u, 2.0 * row["edge_spacing_mm"] * e.k_sigma))
+        d, s = e.apply(row["diameter_half_mm"], row["fit_sigma_mm"], row["edge_spacing_mm"])
         s = float(np.hypot(s, c * offset_sigma))
         ref = row["reference_diameter_mm"]
         out.append({"name": row["name"], "diameter_mm": d, "diameter_sigma_mm": s,
@@ -342,12 +369,45 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                     "naive_diameter_mm": row["naive_diameter_mm"],
                     "diameter_half_mm": row["diameter_half_mm"], "beam_spacing_mm": row["beam_spacing_mm"],
                     "rim_stretch": row["rim_stretch"], "edge_spacing_mm": row["edge_spacing_mm"],
-                    "edge_offset_mm": edge.k * row["edge_spacing_mm"], "mixed_share": row["mixed_share"]})
+                    "edge_offset_mm": e.k * row["edge_spacing_mm"], "mixed_share": row["mixed_share"],
+                    "spot_sigma_mm": row["spot_sigma_mm"] if np.isfinite(row["spot_sigma_mm"]) else None})
     table = pd.DataFrame(out)
     # the range offset's 1-sigma (calibration.json ranging) propagated into every diameter
     table.attrs["edge_model"] = {**edge.to_dict(), "range_offset_sigma_mm": offset_sigma}
-    table.attrs["warnings"] = _other_rig_warnings(ds, calibration) + list(edge.warnings)
+    table.attrs["warnings"] = (_other_rig_warnings(ds, calibration) + list(edge.warnings)
+                               + _wide_spot_warnings(wide, zone))
     return table
+
+
+def _edge_zone_returns(calibration) -> float:
+    """Depth (returns) of the calibration's scan edge zones (``calibration.json``
+    ``scan_edge_zones``, :mod:`lidarcal.scan_edges`): > 0 when the V's scans showed a spot
+    wider than a beam spacing; 0 when none were found or not recorded."""
+    import json
+
+    if hasattr(calibration, "pose"):
+        return 0.0
+    try:
+        z = json.loads(Path(calibration).read_text()).get("scan_edge_zones") or {}
+    except (OSError, ValueError):
+        return 0.0
+    return float(max(z.get("outer_returns") or 0, z.get("hinge_returns") or 0))
+
+
+def _wide_spot_warnings(wide: list[tuple[str, float, float]], zone: float) -> list[str]:
+    """One warning naming the discs whose prior was widened to a wide beam spot, and why."""
+    if not wide:
+        return []
+    names = ", ".join(n for n, _, _ in wide)
+    spread = max(s for _, _, s in wide)
+    seen = [u for _, u, _ in wide if np.isfinite(u)]
+    cause = (f"the beam spot's sigma is {min(seen):.1f}-{max(seen):.1f} beam spacings at the discs "
+             "(measured in their mixed rim returns)") if seen else (
+        f"the calibration's scan edge zones ({zone:g} returns, calibration.json scan_edge_zones) show a "
+        "spot wider than a beam spacing and the discs' rims show no mixed returns to measure it")
+    return [f"{names}: {cause}; the rim offset of such a spot is not known without a reference, so "
+            f"each diameter_sigma_mm carries up to {spread:.2f} mm (1-sigma) for it; measure a disc "
+            "of known diameter on the same rig and pass it with --reference NAME"]
 
 
 def _other_rig_warnings(ds, calibration) -> list[str]:

@@ -70,11 +70,15 @@ from scipy.optimize import brentq, least_squares
 from scipy.sparse import csgraph
 
 from .geometry import MAD_TO_SIGMA, Plane, Pose, fit_circle_2d, fit_plane, plane_basis
+from . import spot
 from .io.dataset import LidarSpec
 from .ranging import ranging_of
 
 #: inlier band of the disc plane, in robust range-noise sigmas
 K_SIGMA = 4.0
+#: rim search and background window around the disc hits (cells) for a spot about a beam wide;
+#: a wider mixed band (lidarcal.spot.mixed_band_mm) widens both
+NEAR_CELLS = 4
 
 
 class PoseFunction(Protocol):
@@ -501,12 +505,27 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
     band = K_SIGMA * sigma
     behind = valid & (dr > band)
     front = valid & (dr < -band)
-    near = ndimage.binary_dilation(hits, structure=np.ones((3, 3), bool), iterations=4)
+    # the beam spot's mixed band around the disc (lidarcal.spot): a spot several beams wide
+    # needs the rim searched, and the background read, beyond the 4 cells a narrow one needs
+    Pd = grid.origin[:, None, :] + r_disc[..., None] * grid.direction
+    spacing = spot.grid_spacing_mm(Pd, hits)
+    bg_plane = spot.background_plane(X, behind, hits, spacing, K_SIGMA * sigma,
+                                     lambda p, tol: _ransac_plane(p, tol, np.random.default_rng(seed + 1)))
+    band_mm = 0.0
+    if bg_plane is not None:
+        r_bg_plane = spot.ray_range_to_plane(grid.origin, grid.direction, bg_plane)
+        band_mm = spot.mixed_band_mm(behind & (r < r_bg_plane - band), grid.row >= 0, hits, spacing)
+    reach = tuple(max(NEAR_CELLS, int(np.ceil(band_mm / s)) + 1) if np.isfinite(s) and s > 0
+                  else NEAR_CELLS for s in spacing)
+    wide = reach != (NEAR_CELLS, NEAR_CELLS)
+    near = hits | spot.ring(hits, reach)
     cand = behind & near
     r_bg = np.full((P, B), np.nan)
     ci, cj = np.nonzero(cand)
-    if len(ci):
-        w = 4
+    if wide and len(ci):  # the band is wider than the local window: the background plane's range
+        r_bg[ci, cj] = r_bg_plane[ci, cj]
+    elif len(ci):
+        w = NEAR_CELLS
         oi, oj = np.meshgrid(np.arange(-w, w + 1), np.arange(-w, w + 1), indexing="ij")
         ii = np.clip(ci[:, None] + oi.ravel(), 0, P - 1)
         jj = np.clip(cj[:, None] + oj.ravel(), 0, B - 1)
@@ -537,12 +556,12 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
         kappa *= np.abs(denom) / _background_cos(grid, behind & (g == 0), hits, sigma, rng)
     with np.errstate(divide="ignore", invalid="ignore"):
         g = np.where((g > 0) & (g < 1), g / (kappa * (1.0 - g) + g), g)
-    Pd = grid.origin[:, None, :] + r_disc[..., None] * grid.direction
     inside = np.isfinite(g) & (g >= 0.5)
     ins, outs, qs, hard, rd = [], [], [], [], []
     dirs_mid = []
     for di, dj in _DIRS:
-        eligible = hits | (mixed & inside & _walk_back(hits, inside & ~hits, di, dj, 3))
+        depth = reach[0] - 1 if di else reach[1] - 1  # 3 for a narrow spot
+        eligible = hits | (mixed & inside & _walk_back(hits, inside & ~hits, di, dj, depth))
         gb = _shift(g, di, dj, np.nan)
         # the disc is convex: beyond the rim the next beam is outside too (this
         # drops dropouts and stray ranges inside the disc or notching its rim)
@@ -635,9 +654,15 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
     er /= np.maximum(np.linalg.norm(er, axis=1, keepdims=True), 1e-12)
     w = 1.0 / sig[keep] ** 2
     stretch = float(np.sum(w / _rim_foreshortening(er, Bs, dmid[keep])) / np.sum(w))
+    # the spot from the mixed returns' disc fractions (lidarcal.spot): its sigma across the
+    # beam, and the half-share contour's offset inside the convex rim, sigma_t^2 / (2 R)
+    mix = mixed & np.isfinite(g) & (g < 1)
+    spot_sigma, spot_n = spot.spot_sigma_mm(g[mix], to2(Pd[mix]), grid.direction[mix], Bs, x[:2], abs(x[2]))
+    curvature = spot.curvature_offset_mm(spot_sigma, er, dmid[keep], Bs, abs(x[2]), w)
+    radius = abs(x[2]) + curvature
     centre = origin + x[:2] @ Bs
     t = np.linspace(0, 2 * np.pi, 180, endpoint=False)
-    circle = centre + abs(x[2]) * (np.outer(np.cos(t), Bs[0]) + np.outer(np.sin(t), Bs[1]))
+    circle = centre + radius * (np.outer(np.cos(t), Bs[0]) + np.outer(np.sin(t), Bs[1]))
 
     cells = grid.row >= 0
     order = np.argsort(grid.row[cells])
@@ -649,9 +674,11 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
             "hard_crossings": int(hard.sum()), "mixed_returns": int(mixed.sum()),
             "naive_center_mm": (origin + c_naive @ Bs).tolist(),
             "edge_offset_mm": float(offset * np.nanmedian(rd)) if offset else 0.0,
-            "scan_lines": int(P), "beams": int(B), "rim_stretch": stretch}
+            "scan_lines": int(P), "beams": int(B), "rim_stretch": stretch,
+            "spot_sigma_mm": spot_sigma, "spot_returns": spot_n, "rim_curvature_mm": curvature,
+            "mixed_band_mm": band_mm, "grid_spacing_mm": list(spacing)}
     return DiscMeasurement(
-        diameter_mm=float(2 * abs(x[2])), center_mm=centre, normal=plane.normal.copy(),
+        diameter_mm=float(2 * radius), center_mm=centre, normal=plane.normal.copy(),
         points=int(hits.sum()), naive_diameter_mm=float(2 * r_naive),
         diameter_std_mm=2 * r_std, noise_mm=float(sigma),
         cloud=cloud, disc_mask=disc_mask, rim_mask=rim_mask,
