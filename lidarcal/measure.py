@@ -510,7 +510,8 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
     Pd = grid.origin[:, None, :] + r_disc[..., None] * grid.direction
     spacing = spot.grid_spacing_mm(Pd, hits)
     bg_plane = spot.background_plane(X, behind, hits, spacing, K_SIGMA * sigma,
-                                     lambda p, tol: _ransac_plane(p, tol, np.random.default_rng(seed + 1)))
+                                     lambda p, tol: _ransac_plane(p, tol, np.random.default_rng(seed + 1)),
+                                     grid.origin.mean(0))
     band_mm = 0.0
     if bg_plane is not None:
         r_bg_plane = spot.ray_range_to_plane(grid.origin, grid.direction, bg_plane)
@@ -657,7 +658,8 @@ def measure_disc(sweep: pd.DataFrame, model: PoseFunction, lidar: LidarSpec | No
     # the spot from the mixed returns' disc fractions (lidarcal.spot): its sigma across the
     # beam, and the half-share contour's offset inside the convex rim, sigma_t^2 / (2 R)
     mix = mixed & np.isfinite(g) & (g < 1)
-    spot_sigma, spot_n = spot.spot_sigma_mm(g[mix], to2(Pd[mix]), grid.direction[mix], Bs, x[:2], abs(x[2]))
+    spot_sigma, spot_n = spot.spot_sigma_mm(g[mix], to2(Pd[mix]), grid.direction[mix], Bs, x[:2], abs(x[2]),
+                                            min_returns=len(Q) // 2)  # mixed returns at most crossings
     curvature = spot.curvature_offset_mm(spot_sigma, er, dmid[keep], Bs, abs(x[2]), w)
     radius = abs(x[2]) + curvature
     centre = origin + x[:2] @ Bs

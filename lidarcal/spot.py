@@ -35,10 +35,15 @@ from scipy.special import ndtri
 
 from .geometry import MAD_TO_SIGMA, Plane
 
-#: a background plane needs this share of the ring's returns behind the disc within the noise band
-BACKGROUND_MIN_SHARE = 0.5
+#: a background plane needs this share of the ring's returns behind the disc within its noise
+#: band (the rest: mixed returns in front of it) ...
+BACKGROUND_MIN_SHARE = 0.25
+#: ... and at most this share beyond it (a background that is not one plane; spurious ranges)
+BACKGROUND_MAX_BEYOND = 0.1
 #: the mixed band ends at the first distance where fewer than this share of the beams are mixed
 BAND_MIN_SHARE = 0.5
+#: a spot sigma beyond this share of the disc's radius is not trusted (module docstring)
+MAX_SIGMA_RADIUS = 0.25
 #: disc fractions used by the probit regression (beyond them Phi^-1 amplifies range noise)
 F_RANGE = (0.05, 0.95)
 
@@ -73,10 +78,12 @@ def ring(hits: np.ndarray, cells: tuple[int, int]) -> np.ndarray:
 
 
 def background_plane(points: np.ndarray, behind: np.ndarray, hits: np.ndarray, spacing_mm: tuple[float, float],
-                     tol_mm: float, fit) -> Plane | None:
+                     tol_mm: float, fit, viewpoint: np.ndarray) -> Plane | None:
     """The background behind the disc, a plane through the returns behind it in a ring as wide as
-    the disc's radius (``fit``: a robust plane fit ``fit(points, tol) -> Plane``); ``None`` when
-    fewer than :data:`BACKGROUND_MIN_SHARE` of them lie on one plane (no planar background)."""
+    the disc's radius (``fit``: a robust plane fit ``fit(points, tol) -> Plane``). Mixed returns
+    lie between the disc and it, never beyond (seen from ``viewpoint``, the LiDAR): ``None``
+    (no planar background) when fewer than :data:`BACKGROUND_MIN_SHARE` of the returns lie on
+    it or more than :data:`BACKGROUND_MAX_BEYOND` beyond it."""
     radius = np.sqrt(hits.sum() * spacing_mm[0] * spacing_mm[1] / np.pi)
     cells = tuple(int(np.ceil(radius / s)) if np.isfinite(s) and s > 0 else 1 for s in spacing_mm)
     pts = points[behind & ring(hits, cells)]
@@ -86,7 +93,9 @@ def background_plane(points: np.ndarray, behind: np.ndarray, hits: np.ndarray, s
         pl = fit(pts, tol_mm)
     except ValueError:
         return None
-    return pl if np.mean(np.abs(pl.distance(pts)) < tol_mm) >= BACKGROUND_MIN_SHARE else None
+    d = pl.distance(pts) * -np.sign(pl.distance(np.asarray(viewpoint, float)[None])[0])  # + = beyond
+    on, beyond = np.mean(np.abs(d) < tol_mm), np.mean(d >= tol_mm)
+    return pl if on >= BACKGROUND_MIN_SHARE and beyond <= BACKGROUND_MAX_BEYOND else None
 
 
 def mixed_band_mm(mixed: np.ndarray, in_sweep: np.ndarray, hits: np.ndarray,
@@ -120,17 +129,19 @@ def stretch2(direction: np.ndarray, basis: np.ndarray, beam: np.ndarray) -> np.n
 
 
 def spot_sigma_mm(f: np.ndarray, xy: np.ndarray, beam: np.ndarray, basis: np.ndarray,
-                  centre: np.ndarray, radius: float) -> tuple[float, int]:
+                  centre: np.ndarray, radius: float, min_returns: int = 20) -> tuple[float, int]:
     """The spot's 1-sigma across the beam (mm) and the number of mixed returns it rests on.
 
     ``f`` (n,): the mixed returns' disc fractions; ``xy`` (n, 2): their beams' points on the disc
     plane; ``beam`` (n, 3): their directions. Probit regression ``x = x0 - sigma0 a Phi^-1(f)``,
     ``x`` the distance outside the circle (``centre``, ``radius``), ``a`` the radial stretch
-    (:func:`stretch2`); refitted once without residuals beyond 4 robust sigmas. NaN with fewer
-    than 20 usable returns or a non-positive slope (no spot seen).
+    (:func:`stretch2`); refitted once without residuals beyond 4 robust sigmas. NaN (no spot
+    seen) with fewer than ``min_returns`` usable returns (a first-echo scanner's few stray
+    mixed ranges), a non-positive slope, or a sigma beyond :data:`MAX_SIGMA_RADIUS` of the
+    radius (the first-order curvature term no longer holds).
     """
     ok = (f > F_RANGE[0]) & (f < F_RANGE[1])
-    if ok.sum() < 20:
+    if ok.sum() < max(min_returns, 20):
         return float("nan"), int(ok.sum())
     v = xy[ok] - centre
     rho = np.linalg.norm(v, axis=1)
@@ -143,7 +154,7 @@ def spot_sigma_mm(f: np.ndarray, xy: np.ndarray, beam: np.ndarray, basis: np.nda
         res = x - A @ coef
         keep = np.abs(res) <= 4.0 * max(MAD_TO_SIGMA * np.median(np.abs(res[keep])), 1e-9)
     sigma0 = float(coef[1])
-    return (sigma0 if sigma0 > 0 else float("nan")), int(keep.sum())
+    return (sigma0 if 0 < sigma0 <= MAX_SIGMA_RADIUS * radius else float("nan")), int(keep.sum())
 
 
 def curvature_offset_mm(sigma0: float, radial: np.ndarray, beam: np.ndarray, basis: np.ndarray,
