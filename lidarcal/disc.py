@@ -69,6 +69,22 @@ LiDAR pose; measured on simulated rigs against the true poses) and is left out.
 
   The edge model's uncertainty then dominates ``diameter_sigma_mm``, so that
   the true diameter lies within 2 sigma for the scanners in that range.
+
+Wide spot (no reference)
+------------------------
+Both priors assume a spot about a beam spacing wide. A wider spot (large exit window or
+divergence) moves the half-share rim by a fraction of the *spot*, not of the beam spacing:
+a disc ``kappa`` times as bright per unit area as its background puts the half-energy point
+``sigma_r Phi^-1(kappa / (1 + kappa))`` outside the rim (0.2 spot sigmas for 1.4x), and
+``kappa`` cannot be read from ranges. :func:`lidarcal.measure.measure_disc` measures the
+spot's sigma in the disc's own mixed returns (:mod:`lidarcal.spot`, ``info["spot_sigma_mm"]``);
+where it exceeds :data:`WIDE_SPOT_SPACINGS` beam spacings, that disc's ``k`` is uniform on
+:data:`PRIOR_SPOT_SIGMAS` spot sigmas (a disc up to 3x as bright as its background:
+``Phi^-1(3/4) = 0.674``; the narrow mixed prior's 0.3 beam spacings are ~0.7 of the paper rig's
+spot sigmas) and a warning names the discs, the spot and the cure (``--reference``).
+A first-echo rim shows no mixed returns; when the calibration's scan edge zones
+(``calibration.json`` ``scan_edge_zones``) are ``n`` returns deep, a spot that wide at the V,
+the prior's upper end becomes ``n`` beam spacings, with the same warning.
 """
 
 from __future__ import annotations
@@ -124,7 +140,8 @@ class EdgeModel:
         (a wide spot at the V) makes the upper end that depth. References: unchanged."""
         if self.source != "prior":
             return self
-        lo, hi = 0.5 * (2.0 * self.k - np.sqrt(12.0) * self.k_sigma), 0.5 * (2.0 * self.k + np.sqrt(12.0) * self.k_sigma)
+        half = 0.5 * np.sqrt(12.0) * self.k_sigma  # the uniform prior's half width
+        lo, hi = self.k - half, self.k + half
         if np.isfinite(spot_sigma_spacings) and spot_sigma_spacings > WIDE_SPOT_SPACINGS:
             lo, hi = (v * spot_sigma_spacings for v in PRIOR_SPOT_SIGMAS)
         elif not np.isfinite(spot_sigma_spacings) and zone_spacings > hi:
@@ -405,9 +422,10 @@ def _wide_spot_warnings(wide: list[tuple[str, float, float]], zone: float) -> li
              "(measured in their mixed rim returns)") if seen else (
         f"the calibration's scan edge zones ({zone:g} returns, calibration.json scan_edge_zones) show a "
         "spot wider than a beam spacing and the discs' rims show no mixed returns to measure it")
-    return [f"{names}: {cause}; the rim offset of such a spot is not known without a reference, so "
-            f"each diameter_sigma_mm carries up to {spread:.2f} mm (1-sigma) for it; measure a disc "
-            "of known diameter on the same rig and pass it with --reference NAME"]
+    msg = (f"{names}: {cause}; the rim offset of such a spot is not known without a reference, so "
+           f"each diameter_sigma_mm carries up to {spread:.2f} mm (1-sigma) for it; measure a disc "
+           "of known diameter on the same rig and pass it with --reference NAME")
+    return [msg]
 
 
 def _other_rig_warnings(ds, calibration) -> list[str]:
