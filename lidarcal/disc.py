@@ -390,7 +390,8 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                     "spot_sigma_mm": row["spot_sigma_mm"] if np.isfinite(row["spot_sigma_mm"]) else None})
     table = pd.DataFrame(out)
     # the range offset's 1-sigma (calibration.json ranging) propagated into every diameter
-    table.attrs["edge_model"] = {**edge.to_dict(), "range_offset_sigma_mm": offset_sigma}
+    table.attrs["edge_model"] = {**edge.to_dict(), "range_offset_sigma_mm": offset_sigma,
+                                 "wide_spot": [name for name, _, _ in wide]}  # their own k: edge_offset_mm
     table.attrs["warnings"] = (_other_rig_warnings(ds, calibration) + list(edge.warnings)
                                + _wide_spot_warnings(wide, zone))
     return table
@@ -418,7 +419,9 @@ def _wide_spot_warnings(wide: list[tuple[str, float, float]], zone: float) -> li
     names = ", ".join(n for n, _, _ in wide)
     spread = max(s for _, _, s in wide)
     seen = [u for _, u, _ in wide if np.isfinite(u)]
-    cause = (f"the beam spot's sigma is {min(seen):.1f}-{max(seen):.1f} beam spacings at the discs "
+    span = f"{min(seen):.1f}" if seen and f"{min(seen):.1f}" == f"{max(seen):.1f}" else \
+        (f"{min(seen):.1f}-{max(seen):.1f}" if seen else "")
+    cause = (f"the beam spot's sigma is {span} beam spacings at the discs "
              "(measured in their mixed rim returns)") if seen else (
         f"the calibration's scan edge zones ({zone:g} returns, calibration.json scan_edge_zones) show a "
         "spot wider than a beam spacing and the discs' rims show no mixed returns to measure it")

@@ -757,7 +757,9 @@ def measure_dataset(dataset: str | os.PathLike, calibration: str | os.PathLike,
 def write_measurements(table: pd.DataFrame, out_dir: str | os.PathLike,
                        dataset: str | os.PathLike) -> Path:
     path = Path(out_dir) / "measurements.json"
-    rows = [{k: v for k, v in r.items()} for r in table.to_dict(orient="records")]
+    # a column mixing numbers and None (e.g. spot_sigma_mm) comes back as NaN: write null
+    rows = [{k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in r.items()}
+            for r in table.to_dict(orient="records")]
     extra = {k: table.attrs[k] for k in ("edge_model", "warnings") if k in table.attrs}
     write_json_atomic(path, {"format": MEASUREMENTS_FORMAT, "dataset": str(Path(dataset).resolve()),
                              **extra, "measurements": rows})

@@ -58,7 +58,8 @@ def half_share(rig_name: str, footprint: str, seed: int, diameters=(100.0, 140.0
         rows.append({"rig": rig_name, "footprint": footprint, "seed": seed, "disc": d.name,
                      "true_mm": 2 * d.disc.radius, "half_mm": m.diameter_mm,
                      "fit_sigma_mm": max(m.diameter_std_mm, random_sigma_mm(m)),
-                     "mixed_share": mixed_share(m.info), "u_mm": u, "stretch": s, "us_mm": u * s})
+                     "mixed_share": mixed_share(m.info), "u_mm": u, "stretch": s, "us_mm": u * s,
+                     "spot_u": m.info.get("spot_sigma_mm", np.nan) / u})
     return rows
 
 
@@ -67,7 +68,7 @@ def evaluate(rows: list[dict]) -> list[dict]:
     out = []
     prior = EdgeModel.prior(float(np.median([r["mixed_share"] for r in rows])))
     for r in rows:
-        d, s = prior.apply(r["half_mm"], r["fit_sigma_mm"], r["us_mm"])
+        d, s = prior.for_disc(r["spot_u"]).apply(r["half_mm"], r["fit_sigma_mm"], r["us_mm"])  # wide spot
         out.append({**r, "mode": "prior", "reference": "", "err_mm": d - r["true_mm"], "sigma_mm": s})
     for ref in rows:
         edge = fit_edge_model([ref["disc"]], *(np.array([ref[k]]) for k in

@@ -130,6 +130,12 @@ def variants() -> list[Variant]:
         _v("disc_near", sweeps=True, disc_distance_mm=(900.0, 1000.0), **disc),
         _v("disc_far", sweeps=True, disc_distance_mm=(2200.0, 2400.0), **disc),
         _v("disc_wide", WBASE, sweeps=True, **disc),
+        # --- measure with a wide beam spot (~14 beam spacings at 1 m; lidarcal.spot) ---
+        _v("div_disc_near", sweeps=True, beam_exit_mm=10.0, beam_divergence_mrad=10.0,
+           disc_distance_mm=(900.0, 1000.0), **disc),
+        _v("div_disc", sweeps=True, beam_exit_mm=10.0, beam_divergence_mrad=10.0, **disc),
+        _v("div_firstecho_disc", sweeps=True, beam_exit_mm=10.0, beam_divergence_mrad=10.0,
+           footprint_model="first-echo", **disc),
     ]
 
 

@@ -9,6 +9,11 @@ the spot was read from the data, measure_disc found no rim crossing at all on th
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from test_measure import make_case, simulate_sweep
@@ -100,3 +105,47 @@ def test_edge_zones_widen_a_first_echo_prior():
     assert prior.for_disc(float("nan"), 0.0) is prior
     (msg,) = _wide_spot_warnings([("t1", float("nan"), 1.0)], 4.0)
     assert "scan_edge_zones" in msg and "--reference" in msg
+
+
+@pytest.fixture(scope="module")
+def wide_dataset(tmp_path_factory) -> tuple[Path, Path]:
+    """Two 100 mm discs at 0.9-1.0 m swept by a LiDAR with a 10 mm exit window and 10 mrad
+    divergence (the simulator's Gaussian spot, disc 1.4x as bright as its panel), 3 positions,
+    and a calibration.json holding the true pose function."""
+    from test_cloud import truth_calibration
+
+    from lidarcal.synthetic.config import get_rig
+    from lidarcal.synthetic.writer import simulate
+
+    root = tmp_path_factory.mktemp("wide")
+    rig = get_rig("paper").with_(beam_exit_mm=10.0, beam_divergence_mrad=10.0, disc_distance_mm=(900.0, 1000.0),
+                                 n_discs=2, disc_diameters_mm=(100.0,), n_positions=3)
+    ds = simulate(root / "ds", seed=3, rig=rig, with_intrinsics=False)
+    return ds, truth_calibration(ds, root / "cal")
+
+
+def _lidarcal(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lidarcal", *args], capture_output=True, text=True, check=False)
+
+
+def test_cli_measure_wide_spot_warns_and_covers(wide_dataset, tmp_path):
+    """Before: -1.86 and -3.57 mm with 0.50 / 0.80 mm sigmas, no warning (with trial_01 as the
+    reference trial_02 was still -1.67 mm off). Now: within 2 sigma and a warning naming the
+    spot; with the reference within 0.1 mm (the simulator's 37 sub-rays: ~0.05 mm)."""
+    ds, cal = wide_dataset
+    truth = {m["name"]: m["diameter_mm"] for m in json.loads((ds / "truth.json").read_text())["measurements"]}
+    r = _lidarcal("measure", str(ds), "--calibration", str(cal), "--out", str(tmp_path / "m0"))
+    assert r.returncode == 0, r.stderr
+    warns = [w for w in r.stderr.splitlines() if w.startswith("warning: ")]
+    assert len(warns) == 1 and "beam spot's sigma" in warns[0] and "--reference NAME" in warns[0], r.stderr
+    m0 = json.loads((tmp_path / "m0" / "measurements.json").read_text())
+    assert m0["edge_model"]["wide_spot"] == ["trial_01", "trial_02"]
+    for row in m0["measurements"]:
+        assert row["spot_sigma_mm"] > 2 * row["beam_spacing_mm"]
+        assert abs(row["diameter_mm"] - truth[row["name"]]) <= 2 * row["diameter_sigma_mm"], row
+    r = _lidarcal("measure", str(ds), "--calibration", str(cal), "--out", str(tmp_path / "m1"),
+                  "--reference", "trial_01")
+    assert r.returncode == 0 and "warning" not in r.stderr, r.stderr
+    (row,) = [m for m in json.loads((tmp_path / "m1" / "measurements.json").read_text())["measurements"]
+              if not m["reference"]]
+    assert abs(row["diameter_mm"] - truth[row["name"]]) < 0.1
