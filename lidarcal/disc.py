@@ -79,9 +79,10 @@ a disc ``kappa`` times as bright per unit area as its background puts the half-e
 ``kappa`` cannot be read from ranges. :func:`lidarcal.measure.measure_disc` measures the
 spot's sigma in the disc's own mixed returns (:mod:`lidarcal.spot`, ``info["spot_sigma_mm"]``);
 where it exceeds :data:`WIDE_SPOT_SPACINGS` beam spacings, that disc's ``k`` is uniform on
-:data:`PRIOR_SPOT_SIGMAS` spot sigmas (a disc up to 3x as bright as its background:
-``Phi^-1(3/4) = 0.674``; the narrow mixed prior's 0.3 beam spacings are ~0.7 of the paper rig's
-spot sigmas) and a warning names the discs, the spot and the cure (``--reference``).
+:data:`PRIOR_SPOT_SIGMAS` spot sigmas: a disc as bright as its background per unit area
+up to twice as bright, ``Phi^-1(2/3) = 0.431`` (the narrow mixed prior's direction: a brighter
+disc moves the rim outwards); a darker disc or a much darker background (black cloth) lies
+outside it. A warning names the discs, the spot and the cure (``--reference``).
 A first-echo rim shows no mixed returns; when the calibration's scan edge zones
 (``calibration.json`` ``scan_edge_zones``) are ``n`` returns deep, a spot that wide at the V,
 the prior's upper end becomes ``n`` beam spacings, with the same warning.
@@ -104,7 +105,7 @@ MIXED_SHARE_MIN = 0.6
 #: a reference that implies an offset outside this range (beam spacings) is suspect
 PLAUSIBLE_K = (-0.5, 1.5)
 #: wide spot, no reference: rim offset prior in the spot's sigmas (module docstring, "Wide spot")
-PRIOR_SPOT_SIGMAS = (0.0, 0.674)
+PRIOR_SPOT_SIGMAS = (0.0, 0.431)
 #: a spot whose sigma across the beam exceeds this many beam spacings is wide
 WIDE_SPOT_SPACINGS = 1.0
 
