@@ -364,6 +364,7 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
                               np.array([row["edge_spacing_mm"] for row in sel]),
                               np.array([row["reference_diameter_mm"] for row in sel]))
         edge = replace(edge, echo=EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows]))).echo)
+        edge = _unseen_spot_references(edge, rows, _edge_zone_returns(calibration))
     else:
         edge = EdgeModel.prior(float(np.median([row["mixed_share"] for row in rows])))
     offset_sigma = float(ranging_of(cal).offset_sigma_mm)
@@ -396,6 +397,27 @@ def measure_dataset(dataset, calibration, references: list[str] | None = None):
     table.attrs["warnings"] = (_other_rig_warnings(ds, calibration) + list(edge.warnings)
                                + _wide_spot_warnings(wide, zone))
     return table
+
+
+def _unseen_spot_references(edge: EdgeModel, rows: list[dict], zone: float) -> EdgeModel:
+    """References on a rig whose calibration found scan edge zones ``zone`` returns deep while
+    no disc rim shows mixed returns (a wide first-echo spot): a ``k`` up to the zone depth is
+    that spot, not a wrong reference diameter; but the first echo's offset changes with the
+    rim's curvature (not modelled), so discs of another size than every reference (> 20 %)
+    are named in a warning (measured on a simulated 10 mrad first-echo rig: 300 mm discs
+    against a 100 mm reference 0.7-1.6 mm large, outside their 2 sigma)."""
+    if zone <= 0 or any(np.isfinite(r["spot_sigma_mm"]) for r in rows):
+        return edge
+    warns = [w for w in edge.warnings if not (edge.k <= zone and "outside the plausible" in w)]
+    refs = [r["diameter_half_mm"] for r in rows if r["reference"]]
+    other = [r["name"] for r in rows if not r["reference"]
+             and all(abs(r["diameter_half_mm"] / d - 1.0) > 0.2 for d in refs)]
+    if other:
+        warns.append(f"{', '.join(other)}: the calibration's scan edge zones ({zone:g} returns, calibration.json "
+                     "scan_edge_zones) show a wide spot and the rims show no mixed returns (a first-echo "
+                     "scanner), whose rim offset changes with the disc's size; these differ from every "
+                     "reference by more than 20 %: measure them against a reference disc of about their size")
+    return replace(edge, warnings=tuple(warns))
 
 
 def _edge_zone_returns(calibration) -> float:

@@ -149,3 +149,22 @@ def test_cli_measure_wide_spot_warns_and_covers(wide_dataset, tmp_path):
     (row,) = [m for m in json.loads((tmp_path / "m1" / "measurements.json").read_text())["measurements"]
               if not m["reference"]]
     assert abs(row["diameter_mm"] - truth[row["name"]]) < 0.1
+
+
+def test_first_echo_wide_spot_references_name_other_sizes():
+    """References on a rig with scan edge zones 9 returns deep and no mixed rim returns: k = 2.8
+    beam spacings is that spot (no 'check reference_diameter_mm' warning); the 300 mm discs,
+    whose first-echo offset differs from the 100 mm reference's, are named; no zones: as before."""
+    from lidarcal.disc import _unseen_spot_references, fit_edge_model
+
+    edge = fit_edge_model(["t1"], np.array([112.0]), np.array([0.1]), np.array([2.1]), np.array([100.0]))
+    assert edge.k > 1.5 and any("outside the plausible" in w for w in edge.warnings)
+    rows = [{"name": n, "reference": n == "t1", "diameter_half_mm": d, "spot_sigma_mm": float("nan")}
+            for n, d in (("t1", 112.0), ("t2", 312.6), ("t3", 112.0))]
+    out = _unseen_spot_references(edge, rows, 9.0)
+    assert not any("outside the plausible" in w for w in out.warnings)
+    (w,) = out.warnings
+    assert w.startswith("t2:") and "scan_edge_zones" in w and "about their size" in w
+    assert _unseen_spot_references(edge, rows, 0.0) is edge
+    seen = [{**r, "spot_sigma_mm": 4.0} for r in rows]   # a mixed rim measured the spot: not this case
+    assert _unseen_spot_references(edge, seen, 9.0) is edge
