@@ -570,7 +570,8 @@ def _cmd_measure(a: argparse.Namespace) -> int:
     print(table[cols].to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     em = table.attrs.get("edge_model", {})
     if em:
-        print(f"edge model ({em['source']}): rim offset {em['k']:.3f} +- {em['k_sigma']:.3f} beam spacings")
+        print(f"edge model ({em['source']}): rim offset {em['k']:.3f} +- {em['k_sigma']:.3f} beam spacings"
+              + (f" ({', '.join(em['wide_spot'])}: their own, wide spot)" if em.get("wide_spot") else ""))
     print(f"wrote {path}")
     return 0
 
