@@ -160,7 +160,7 @@ def test_lidar_sweep_script_runs_one_variant(tmp_path):
     one table row with the exit codes and the true errors against truth.json; ``--reuse``
     calibrates the same dataset again (same numbers); ``--list`` names every variant."""
     names = [line.split()[0] for line in _sweep("--list").splitlines()]
-    assert {"base", "divergence", "noise20", "psiwrap", "fov360_yaw180", "disc_near"} <= set(names)
+    assert {"base", "divergence", "noise20", "psiwrap", "fov360_yaw180", "disc_near", "div_disc_near"} <= set(names)
     csv1, csv2 = tmp_path / "rows.csv", tmp_path / "rows2.csv"
     line = _sweep("--work", str(tmp_path), "--only", "base", "--positions", "4", "--csv",
                   str(csv1)).strip().splitlines()[-1]
