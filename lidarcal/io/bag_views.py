@@ -50,23 +50,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .bag import (
+from .bag_combine import combine_scans
+from .bag_frames import image_from_msg
+from .bag_read import (
     IMAGE_TYPES,
     LASERSCAN,
     Clock,
-    _connections,
-    _finish_out,
-    _prepare_out,
-    _reader_errors,
-    _write_png,
-    combine_scans,
+    connections,
     open_bag,
     pick_topic,
-    scan_csv_text,
+    reader_errors,
     scan_from_msg,
     unreadable_bag,
 )
-from .bag_frames import image_from_msg
+from .bag_write import finish_out, prepare_out, scan_csv_text, write_png
 from .dataset import DatasetError, write_json_atomic
 
 CAMERAINFO = "sensor_msgs/msg/CameraInfo"
@@ -358,7 +355,7 @@ def import_views(bag: str | os.PathLike, out: str | os.PathLike, *,
                                            "CameraInfo", "--camera-info-topic", bag,
                                            prefer=ns.lower(), required=False)
         return _import_views(reader, bag, out, topics, min_scans, overwrite, progress)
-    except _reader_errors() as e:
+    except reader_errors() as e:
         raise unreadable_bag(bag, e) from None
     finally:
         reader.close()
@@ -376,7 +373,7 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
     frame_shape = None
     layout = None
     info = None
-    conns = [c for role in ("scan", "image", "camera_info") for c in _connections(reader, topics[role])]
+    conns = [c for role in ("scan", "image", "camera_info") for c in connections(reader, topics[role])]
     with tqdm(total=sum(c.msgcount for c in conns), unit="msg", disable=not progress,
               desc=f"import {bag.name}") as bar:
         for conn, log_ns, raw in reader.messages(connections=conns):
@@ -470,15 +467,15 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
     # the chosen frames: a second pass over the camera topic
     wanted = {int(fo[iv.middle_frame]): k for k, iv in enumerate(intervals)}
     names = [f"view_{k:03d}_t{fts[iv.middle_frame] - clock0:.2f}" for k, iv in enumerate(intervals)]
-    tmp = _prepare_out(out, overwrite)
+    tmp = prepare_out(out, overwrite)
     try:
         i = -1
-        for conn, _, raw in reader.messages(connections=_connections(reader, topics["image"])):
+        for conn, _, raw in reader.messages(connections=connections(reader, topics["image"])):
             i += 1
             if i in wanted:
                 img = image_from_msg(reader.deserialize(raw, conn.msgtype), conn.msgtype,
                                      f"{bag}: {conn.topic}")
-                _write_png(tmp / f"{names[wanted[i]]}.png", img)
+                write_png(tmp / f"{names[wanted[i]]}.png", img)
         angles = layout.angle_min_deg + np.arange(layout.range_mm.size) * layout.angle_step_deg
         views = []
         for k, iv in enumerate(intervals):
@@ -501,7 +498,7 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
             "views": [{"name": v.name, "t_s": round(v.t_s, 6),
                        "t_start_s": round(v.t_start_s, 6), "t_end_s": round(v.t_end_s, 6),
                        "scans": v.n_scans, "frames": v.n_frames} for v in views]})
-        _finish_out(tmp, out)
+        finish_out(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
