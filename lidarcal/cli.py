@@ -381,7 +381,9 @@ def _cmd_import_views(a: argparse.Namespace, turntable_options: list[str]) -> in
                        overwrite=a.overwrite, progress=not a.no_progress and sys.stderr.isatty())
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    print(f"{len(res.views)} still interval(s) -> {len(res.views)} views ({res.scan_runs} still "
+    merged = sum(len(v.intervals) - 1 for v in res.views)
+    print(f"{res.n_intervals} still interval(s) -> {len(res.views)} views ({merged} merged into "
+          f"a view of the same pose, {res.n_drifting} drifting; {res.scan_runs} still "
           f"run(s) of the scans, {res.frame_runs} of the frames; scan noise "
           f"{res.scan_noise_mm:.3g} mm, frame noise {res.frame_noise:.3g} gray levels); "
           f"camera.json {'written' if res.camera_written else 'not written'}")

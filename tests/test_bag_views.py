@@ -184,7 +184,7 @@ def test_bad_recordings_are_one_line_and_write_nothing(small_rig, tmp_path):
     assert not out.exists()
     p = lidarcal("import", bag, "--views", "--out", out, "--image-topic", "/camera2/image_raw")
     assert p.returncode == 0, p.stderr
-    assert "only 3 still interval(s)" in p.stderr and "3 views" in p.stdout
+    assert "only 3 view(s)" in p.stderr and "3 views" in p.stdout
     assert len(list(out.glob("*.csv"))) == 3
     # an existing output folder needs --overwrite
     p = lidarcal("import", bag, "--views", "--out", out, "--image-topic", "/camera2/image_raw")

@@ -267,6 +267,113 @@ def still_intervals(scan_runs, scan_t0, scan_t1, frame_runs, frame_t,
     return sorted(out, key=lambda s: s.t_start)
 
 
+# ----------------------------------------------------------------------------- holds
+
+
+@dataclass(frozen=True)
+class AgreeTest:
+    """Whether two sets of still readings (two still intervals, or the halves of one) show
+    the same pose within the measured noise: the per-beam medians of their scans do not
+    differ (:func:`scans_differ`) beyond ``K_SIGMA sqrt(c_a + c_b) sigma_b`` and the
+    per-block medians of their frames do not differ (:func:`frames_differ`) beyond
+    ``K_SIGMA sqrt(c_a + c_b) sigma_f``, with ``c`` the variance of a median of ``n``
+    readings in units of one reading's (1, 1/2, ``pi / (2 n)``: :func:`_median_noise_factor`);
+    the floors of the still runs (1.5 range quanta, ``MIN_FRAME_THRESHOLD``) apply."""
+
+    scans: np.ndarray  # (m, n) ranges, mm, time order
+    blocks: np.ndarray  # (k, h, w) frames' block means, time order
+    sigma_s: np.ndarray  # K_SIGMA sigma_b per beam, mm
+    floor_s: float
+    sigma_f: float  # frames' block noise, gray levels
+
+    def agree(self, scans_a, frames_a, scans_b, frames_b) -> bool:
+        def c(n: int) -> float:
+            return _median_noise_factor(n) ** 2 - 1.0
+
+        f = math.sqrt(c(len(scans_a)) + c(len(scans_b)))
+        if scans_differ(_nanmedian(self.scans[scans_a]), _nanmedian(self.scans[scans_b]),
+                        np.maximum(f * self.sigma_s, self.floor_s)):
+            return False
+        if not len(frames_a) or not len(frames_b):
+            return True
+        f = math.sqrt(c(len(frames_a)) + c(len(frames_b)))
+        return not frames_differ(np.median(self.blocks[frames_a], axis=0),
+                                 np.median(self.blocks[frames_b], axis=0),
+                                 max(f * K_SIGMA * self.sigma_f, MIN_FRAME_THRESHOLD))
+
+    def same_pose(self, a: StillInterval, b: StillInterval) -> bool:
+        return self.agree(a.scans, a.frames, b.scans, b.frames)
+
+    def drifts(self, iv: StillInterval) -> bool:
+        """Whether the first and second halves of an interval's scans (and of its frames)
+        differ: a board that slid during the hold, slower than the still runs notice."""
+        h, g = len(iv.scans) // 2, len(iv.frames) // 2
+        return not self.agree(iv.scans[:h], iv.frames[:g], iv.scans[h:], iv.frames[g:])
+
+    def moved_between(self, a: StillInterval, b: StillInterval) -> bool:
+        """Whether two consecutive scans, or two consecutive frames, between the end of
+        ``a`` and the start of ``b`` differ (the still runs' test of a reading against the
+        one before it): the board was carried, not only drifting, between the two."""
+        thr = np.maximum(math.sqrt(2.0) * self.sigma_s, self.floor_s)
+        if any(scans_differ(self.scans[q + 1], self.scans[q], thr)
+               for q in range(a.scans[-1], b.scans[0])):
+            return True
+        thr_f = max(math.sqrt(2.0) * K_SIGMA * self.sigma_f, MIN_FRAME_THRESHOLD)
+        return any(frames_differ(self.blocks[q + 1], self.blocks[q], thr_f)
+                   for q in range(a.frames[-1], b.frames[0]))
+
+
+@dataclass(frozen=True)
+class Holds:
+    """The still intervals sorted into views: ``groups`` (indices of the intervals of one
+    view, first interval first, in time order) and ``drifting`` (intervals not used)."""
+
+    groups: list[list[int]]
+    drifting: dict[int, str]  # interval -> why
+
+
+def sort_holds(intervals: list[StillInterval], test: AgreeTest) -> Holds:
+    """Still intervals -> views: a drifting hold is dropped, one pose held twice is one view.
+
+    1. *drift*: an interval whose halves differ (:meth:`AgreeTest.drifts`), or consecutive
+       intervals with no move between them (:meth:`AgreeTest.moved_between`) that do not
+       all show one pose: the board slid during one hold and the still runs cut it into
+       pieces. Every interval of such a hold is dropped (its pieces are near-copies of one
+       pose that would count as independent views in ``lidarcal planes``).
+    2. *merge*: the remaining intervals that show the same pose within the noise
+       (:meth:`AgreeTest.same_pose`; the board paused twice, or was brought back exactly)
+       form one view; an interval joins the first view whose every interval it agrees with.
+    """
+    drifting: dict[int, str] = {}
+    chain = [0] if intervals else []
+    chains = []
+    for i in range(1, len(intervals)):
+        if test.moved_between(intervals[i - 1], intervals[i]):
+            chains.append(chain)
+            chain = [i]
+        else:
+            chain.append(i)
+    if chain:
+        chains.append(chain)
+    for ch in chains:
+        inside = [i for i in ch if test.drifts(intervals[i])]
+        pieces = len(ch) > 1 and not all(test.same_pose(intervals[i], intervals[j])
+                                         for i, j in itertools.combinations(ch, 2))
+        for i in ch if inside or pieces else []:
+            drifting[i] = ("its first and second halves differ beyond the noise" if i in inside
+                           else f"{len(ch)} still pieces with no move between them differ "
+                                "beyond the noise")
+    groups: list[list[int]] = []
+    for i in (i for i in range(len(intervals)) if i not in drifting):
+        for g in groups:
+            if all(test.same_pose(intervals[i], intervals[j]) for j in g):
+                g.append(i)
+                break
+        else:
+            groups.append([i])
+    return Holds(groups, drifting)
+
+
 # ----------------------------------------------------------------------------- camera info
 
 
@@ -316,6 +423,7 @@ class ImportedView:
     t_end_s: float
     n_scans: int
     n_frames: int
+    intervals: list[int] = field(default_factory=list)  # still intervals merged into it
 
 
 @dataclass
@@ -329,6 +437,8 @@ class ViewsResult:
     topics: dict[str, str | None]
     camera_written: bool
     warnings: list[str] = field(default_factory=list)
+    n_intervals: int = 0  # still intervals found (views + merged + drifting)
+    n_drifting: int = 0  # still intervals dropped: the board slid during the hold
 
 
 def import_views(bag: str | os.PathLike, out: str | os.PathLike, *,
@@ -446,10 +556,22 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
                                 f"with {min_scans} whole scans and a frame ({noise_text}); hold "
                                 "the board still at each view for about a second (at least "
                                 f"{min_scans} scans and two frames)")
-    if len(intervals) < FEW_VIEWS:
-        warn.append(f"only {len(intervals)} still interval(s): lidarcal planes needs at least 3 "
+    holds = sort_holds(intervals, AgreeTest(R, np.stack(blocks), sigma_s, float(floor_s), sigma_f))
+    for i, why in holds.drifting.items():
+        iv = intervals[i]
+        warn.append(f"the board moved slowly during the hold at {iv.t_start - clock0:.2f}.."
+                    f"{iv.t_end - clock0:.2f} s ({why}): not used as a view; hold the board "
+                    "still at each view")
+    if not holds.groups:
+        raise DatasetError(bag, f"no still view: all {len(intervals)} still interval(s) drifted "
+                                f"(the board moved slowly while held; {noise_text}); hold the "
+                                "board still at each view for about a second")
+    if len(holds.groups) < FEW_VIEWS:
+        warn.append(f"only {len(holds.groups)} view(s): lidarcal planes needs at least 3 "
                     f"views with differently tilted boards and fixes the pose better with "
                     f"{FEW_VIEWS} or more; record more holds")
+    # a merged view's frame: the middle frame of its interval with the most frames
+    main = [max(g, key=lambda i: (len(intervals[i].frames), -i)) for g in holds.groups]
 
     camera = None
     if topics["camera_info"] is not None and info is None:
@@ -465,8 +587,9 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
             camera = None
 
     # the chosen frames: a second pass over the camera topic
-    wanted = {int(fo[iv.middle_frame]): k for k, iv in enumerate(intervals)}
-    names = [f"view_{k:03d}_t{fts[iv.middle_frame] - clock0:.2f}" for k, iv in enumerate(intervals)]
+    wanted = {int(fo[intervals[m].middle_frame]): k for k, m in enumerate(main)}
+    names = [f"view_{k:03d}_t{fts[intervals[m].middle_frame] - clock0:.2f}"
+             for k, m in enumerate(main)]
     tmp = prepare_out(out, overwrite)
     try:
         i = -1
@@ -478,13 +601,16 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
                 write_png(tmp / f"{names[wanted[i]]}.png", img)
         angles = layout.angle_min_deg + np.arange(layout.range_mm.size) * layout.angle_step_deg
         views = []
-        for k, iv in enumerate(intervals):
-            r = combine_scans([R[q].astype(np.float64) for q in iv.scans])
+        for k, (g, m) in enumerate(zip(holds.groups, main)):
+            iv = intervals[m]
+            scans_k = sorted(q for i in g for q in intervals[i].scans)
+            r = combine_scans([R[q].astype(np.float64) for q in scans_k])
             (tmp / f"{names[k]}.csv").write_text(scan_csv_text(angles, r))
             views.append(ImportedView(names[k], float(fts[iv.middle_frame] - clock0),
                                       float(iv.t_start - clock0), float(iv.t_end - clock0),
-                                      len(iv.scans),
-                                      len(iv.frames)))
+                                      len(scans_k), sum(len(intervals[i].frames) for i in g),
+                                      list(g)))
+        view_of = {i: v.name for v in views for i in v.intervals}
         if camera is not None:
             write_json_atomic(tmp / "camera.json", camera)
         write_json_atomic(tmp / "views.json", {
@@ -495,12 +621,18 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
             "scan_threshold_mm_median": float(np.median(thr_scan)),
             "frame_threshold_gray": thr_frame, "min_scans": min_scans,
             "still_scan_runs": n_srun, "still_frame_runs": n_frun,
+            "still_intervals": [{"index": i, "t_start_s": round(iv.t_start - clock0, 6),
+                                 "t_end_s": round(iv.t_end - clock0, 6), "scans": len(iv.scans),
+                                 "frames": len(iv.frames), "view": view_of.get(i),
+                                 **({"drifting": holds.drifting[i]} if i in holds.drifting else {})}
+                                for i, iv in enumerate(intervals)],
             "views": [{"name": v.name, "t_s": round(v.t_s, 6),
                        "t_start_s": round(v.t_start_s, 6), "t_end_s": round(v.t_end_s, 6),
-                       "scans": v.n_scans, "frames": v.n_frames} for v in views]})
+                       "scans": v.n_scans, "frames": v.n_frames, "intervals": v.intervals}
+                      for v in views]})
         finish_out(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return ViewsResult(out, views, n_srun, n_frun, float(np.median(sigma_b)), sigma_f, topics,
-                       camera is not None, warn)
+                       camera is not None, warn, len(intervals), len(holds.drifting))
