@@ -444,13 +444,19 @@ class ViewsResult:
 def import_views(bag: str | os.PathLike, out: str | os.PathLike, *,
                  scan_topic: str | None = None, image_topic: str | None = None,
                  camera_info_topic: str | None = None, min_scans: int = 5,
+                 pattern: tuple[int, int] | None = None, square_mm: float | None = None,
                  overwrite: bool = False, progress: bool = False) -> ViewsResult:
     """A one-board bag -> a folder of ``NAME.png`` + ``NAME.csv`` views (and ``camera.json``
     from a CameraInfo, ``views.json`` with what was found), written atomically.
 
+    ``pattern`` (inner corners, columns x rows) and ``square_mm`` (both or neither): the
+    board, written as ``board.json`` (:func:`lidarcal.io.pairs.board_spec` reads it, so
+    ``lidarcal planes DIR`` needs no ``--pattern``/``--square-mm``).
+
     See the module docstring for how the still intervals are found.
     """
     bag, out = Path(bag), Path(out)
+    board = board_json(bag, pattern, square_mm)
     if min_scans < 3:
         raise DatasetError(bag, f"--min-scans must be >= 3 (a per-beam median needs 3 scans), "
                                 f"got {min_scans}")
@@ -464,15 +470,32 @@ def import_views(bag: str | os.PathLike, out: str | os.PathLike, *,
         topics["camera_info"] = pick_topic(reader, camera_info_topic, (CAMERAINFO,),
                                            "CameraInfo", "--camera-info-topic", bag,
                                            prefer=ns.lower(), required=False)
-        return _import_views(reader, bag, out, topics, min_scans, overwrite, progress)
+        return _import_views(reader, bag, out, topics, min_scans, overwrite, progress, board)
     except reader_errors() as e:
         raise unreadable_bag(bag, e) from None
     finally:
         reader.close()
 
 
+def board_json(bag: Path, pattern: tuple[int, int] | None,
+               square_mm: float | None) -> dict | None:
+    """``board.json`` of a views folder (the keys of dataset.json's boards), or None."""
+    if pattern is None and square_mm is None:
+        return None
+    if pattern is None or square_mm is None:
+        raise DatasetError(bag, "--pattern and --square-mm go together (board.json needs the "
+                                "inner corners and the square side); give both or neither")
+    if (len(pattern) != 2 or not all(isinstance(v, int) and v >= 2 for v in pattern)):
+        raise DatasetError(bag, f"--pattern must be COLSxROWS inner corners, each >= 2 (like "
+                                f"8x5), got {'x'.join(map(str, pattern))}")
+    if not (math.isfinite(square_mm) and square_mm > 0):
+        raise DatasetError(bag, f"--square-mm must be a number > 0 (the square side, mm), got "
+                                f"{square_mm:g}")
+    return {"inner_corners": [int(pattern[0]), int(pattern[1])], "square_mm": float(square_mm)}
+
+
 def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, overwrite: bool,
-                  progress: bool) -> ViewsResult:
+                  progress: bool, board: dict | None = None) -> ViewsResult:
     from tqdm import tqdm
 
     clock = Clock()
@@ -613,6 +636,8 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
         view_of = {i: v.name for v in views for i in v.intervals}
         if camera is not None:
             write_json_atomic(tmp / "camera.json", camera)
+        if board is not None:
+            write_json_atomic(tmp / "board.json", board)
         write_json_atomic(tmp / "views.json", {
             "bag": str(bag), "topics": topics, "clock": dict(clock.mode),
             "scan_noise_mm": {"median": float(np.median(sigma_b)),
