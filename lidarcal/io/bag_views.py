@@ -29,9 +29,19 @@ Still intervals are found from the data, with thresholds from the data's own noi
   of at least two frames (one frame cannot show that the image holds still).
 - a **still interval** is where a still run of scans and a still run of frames overlap
   and holds at least ``min_scans`` whole scans (beams ``stamp .. stamp + (n - 1)
-  time_increment``) and a frame. Per interval: the frame nearest its middle and the
-  per-beam median of its scans (the median of >= 3 scans reduces the noise by about
-  ``sqrt(pi / (2 n))`` and removes mixed returns and dropouts).
+  time_increment``) and a frame.
+- **holds** (:func:`sort_holds`, tests of :class:`AgreeTest`): two sets of still readings
+  show one pose when the per-beam medians of their scans and the per-block medians of
+  their frames agree within ``K_SIGMA`` times the noise of a difference of two medians.
+  An interval whose halves do not agree, and consecutive intervals with no move between
+  them (no two consecutive readings differ) that do not all agree, are a board that slid
+  while held: not used (a warning names the hold). The remaining intervals that agree
+  are one pose held twice (a pause, a return): one view, so that ``lidarcal planes`` does
+  not count one pose twice and report falsely small sigmas.
+- per view: the frame nearest the middle of its interval (of the merged intervals, the
+  one with the most frames) and the per-beam clipped mean of all its scans
+  (:func:`lidarcal.io.bag_combine.combine_scans`, at most the noise of their median,
+  ``sqrt(pi / (2 n))`` of one scan's; mixed returns and dropouts left out).
 
 Views are named ``view_NNN_tSS.SS`` (index, the frame's time in seconds from the bag's
 first message). Topics, clocks and invalid returns follow :mod:`lidarcal.io.bag`.
