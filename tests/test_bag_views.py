@@ -21,7 +21,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lidarcal.io.bag_views import beam_noise_mm, camera_from_info, import_views, still_runs
+from lidarcal.io.bag_views import (
+    K_SIGMA,
+    AgreeTest,
+    StillInterval,
+    beam_noise_mm,
+    camera_from_info,
+    import_views,
+    sort_holds,
+    still_runs,
+)
 from lidarcal.io.dataset import DatasetError
 from lidarcal.io.pairs import read_view_pairs
 from lidarcal.synthetic.bag import T0_NS
@@ -365,6 +374,58 @@ def test_still_runs_are_the_holds(seed):
         # every reading within 4 sigma (x sqrt(1 + pi / 10)) of the run's median, plus noise
         assert np.ptp(seq[a:b + 1]) <= 2 * 4 * (1 + math.sqrt(1 + math.pi / 10)) * noise
     assert not any(b1 >= a2 for (_, b1), (a2, _) in itertools.pairwise(runs))  # disjoint, in order
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sort_holds_merges_one_pose_and_drops_drift(seed):
+    # one reading = a scan (60 beams, sigma 3 mm) and a frame's block means (6 x 8, sigma 0.5)
+    # per step. Holds of 30 readings: A, B, B again after an excursion, C sliding by 10 sigma,
+    # E sliding by 6 sigma in two pieces of 2 sigma each (their halves agree) with 3 readings
+    # between them and no move, A again, D; moves of 10 readings between the holds.
+    # -> views [A, A], [B, B], [D]; the three drifting intervals dropped
+    rng = np.random.default_rng(seed)
+    sig_s, sig_f = 3.0, 0.5
+    poses = {k: (rng.uniform(1000, 3000, 60), rng.uniform(20, 230, (6, 8))) for k in "ABCDEX"}
+    scans, blocks, intervals = [], [], []
+
+    def add(pose_a, pose_b, n, hold: bool):
+        (sa, fa), (sb, fb) = poses[pose_a], poses[pose_b]
+        first = len(scans)
+        for u in np.linspace(0, 1, n):
+            scans.append((1 - u) * sa + u * sb + rng.normal(0, sig_s, 60))
+            blocks.append((1 - u) * fa + u * fb + rng.normal(0, sig_f, (6, 8)))
+        if hold:
+            idx = list(range(first, len(scans)))
+            intervals.append(StillInterval(first, len(scans) - 1, idx, idx, idx[n // 2]))
+
+    # a slide of 10 sigma: C -> C' and E -> E' (the primed poses 10 sigma away)
+    poses["C'"] = (poses["C"][0] + 10 * sig_s, poses["C"][1] + 10 * sig_f)
+    for k, m in (("E1", 2), ("E2", 4), ("E'", 6)):
+        poses[k] = (poses["E"][0] + m * sig_s, poses["E"][1] + m * sig_f)
+    plan = [("A", 30), ("B", 30), ("X", 0), ("B", 30), ("C", 30), ("E", 15), ("A", 30),
+            ("D", 30)]
+    prev = None
+    for pose, n in plan:
+        if prev is not None:
+            add(prev, pose, 10, False)  # carried
+        if pose == "C":
+            add("C", "C'", 30, True)
+            prev = "C'"
+        elif pose == "E":
+            add("E", "E1", 15, True)
+            add("E1", "E2", 3, False)  # a stretch the still runs left out, no move
+            add("E2", "E'", 15, True)
+            prev = "E'"
+        else:
+            if n:
+                add(pose, pose, n, True)
+            prev = pose
+    test = AgreeTest(np.array(scans), np.array(blocks), np.full(60, K_SIGMA * sig_s), 0.0, sig_f)
+    holds = sort_holds(intervals, test)
+    # intervals: 0 A, 1 B, 2 B, 3 C (slides), 4 E1, 5 E2 (pieces of one slide), 6 A, 7 D
+    assert holds.groups == [[0, 6], [1, 2], [7]], holds
+    assert sorted(holds.drifting) == [3, 4, 5]
+    assert "halves" in holds.drifting[3] and "2 still pieces" in holds.drifting[4]
 
 
 def _info(model: str, d, k=(650.0, 0, 320, 0, 650, 240, 0, 0, 1), size=(640, 480), ros1=False,

@@ -295,20 +295,28 @@ class AgreeTest:
     sigma_s: np.ndarray  # K_SIGMA sigma_b per beam, mm
     floor_s: float
     sigma_f: float  # frames' block noise, gray levels
+    _medians: dict = field(default_factory=dict, repr=False)  # (kind, indices) -> median
+
+    def _median(self, kind: str, idx) -> np.ndarray:
+        key = (kind, tuple(idx))
+        if key not in self._medians:
+            self._medians[key] = (_nanmedian(self.scans[list(idx)]) if kind == "scans"
+                                  else np.median(self.blocks[list(idx)], axis=0))
+        return self._medians[key]
 
     def agree(self, scans_a, frames_a, scans_b, frames_b) -> bool:
         def c(n: int) -> float:
             return _median_noise_factor(n) ** 2 - 1.0
 
         f = math.sqrt(c(len(scans_a)) + c(len(scans_b)))
-        if scans_differ(_nanmedian(self.scans[scans_a]), _nanmedian(self.scans[scans_b]),
+        if scans_differ(self._median("scans", scans_a), self._median("scans", scans_b),
                         np.maximum(f * self.sigma_s, self.floor_s)):
             return False
         if not len(frames_a) or not len(frames_b):
             return True
         f = math.sqrt(c(len(frames_a)) + c(len(frames_b)))
-        return not frames_differ(np.median(self.blocks[frames_a], axis=0),
-                                 np.median(self.blocks[frames_b], axis=0),
+        return not frames_differ(self._median("frames", frames_a),
+                                 self._median("frames", frames_b),
                                  max(f * K_SIGMA * self.sigma_f, MIN_FRAME_THRESHOLD))
 
     def same_pose(self, a: StillInterval, b: StillInterval) -> bool:
