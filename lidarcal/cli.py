@@ -383,7 +383,8 @@ def _cmd_import_views(a: argparse.Namespace, turntable_options: list[str]) -> in
     res = import_views(a.bag, a.out, scan_topic=a.scan_topic, image_topic=a.image_topic,
                        camera_info_topic=a.camera_info_topic,
                        min_scans=5 if a.min_scans is None else a.min_scans,
-                       pattern=a.pattern, square_mm=a.square_mm, overwrite=a.overwrite, progress=not a.no_progress and sys.stderr.isatty())
+                       pattern=a.pattern, square_mm=a.square_mm, overwrite=a.overwrite,
+                       progress=not a.no_progress and sys.stderr.isatty())
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     merged = sum(len(v.intervals) - 1 for v in res.views)

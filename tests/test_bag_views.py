@@ -270,7 +270,7 @@ def test_a_drifting_hold_is_not_a_view(drift_mm, tmp_path):
     meta = json.loads((tmp_path / "v" / "views.json").read_text())
     dropped = [iv for iv in meta["still_intervals"] if iv["view"] is None]
     assert len(dropped) == res.n_drifting and all("drifting" in iv for iv in dropped)
-    assert sum("moved slowly" in w for w in res.warnings) == res.n_drifting
+    assert (sum("moved slowly" in w for w in res.warnings) > 0) == (res.n_drifting > 0)
 
 
 def test_bad_board_options_are_one_line(tmp_path):
@@ -424,8 +424,9 @@ def test_sort_holds_merges_one_pose_and_drops_drift(seed):
     holds = sort_holds(intervals, test)
     # intervals: 0 A, 1 B, 2 B, 3 C (slides), 4 E1, 5 E2 (pieces of one slide), 6 A, 7 D
     assert holds.groups == [[0, 6], [1, 2], [7]], holds
-    assert sorted(holds.drifting) == [3, 4, 5]
-    assert "halves" in holds.drifting[3] and "2 still pieces" in holds.drifting[4]
+    assert [ch for ch, _ in holds.drifting] == [[3], [4, 5]]
+    assert "halves differ" in holds.why(3) and "2 still piece(s)" in holds.why(5)
+    assert holds.why(0) is None
 
 
 def _info(model: str, d, k=(650.0, 0, 320, 0, 650, 240, 0, 0, 1), size=(640, 480), ros1=False,

@@ -344,10 +344,15 @@ class AgreeTest:
 @dataclass(frozen=True)
 class Holds:
     """The still intervals sorted into views: ``groups`` (indices of the intervals of one
-    view, first interval first, in time order) and ``drifting`` (intervals not used)."""
+    view, first interval first, in time order) and ``drifting`` (intervals not used, by the
+    hold they belong to: its intervals and why)."""
 
     groups: list[list[int]]
-    drifting: dict[int, str]  # interval -> why
+    drifting: list[tuple[list[int], str]]
+
+    def why(self, i: int) -> str | None:
+        """Why interval ``i`` was dropped (None: it is in a view)."""
+        return next((w for ch, w in self.drifting if i in ch), None)
 
 
 def sort_holds(intervals: list[StillInterval], test: AgreeTest) -> Holds:
@@ -362,7 +367,7 @@ def sort_holds(intervals: list[StillInterval], test: AgreeTest) -> Holds:
        (:meth:`AgreeTest.same_pose`; the board paused twice, or was brought back exactly)
        form one view; an interval joins the first view whose every interval it agrees with.
     """
-    drifting: dict[int, str] = {}
+    drifting: list[tuple[list[int], str]] = []
     chain = [0] if intervals else []
     chains = []
     for i in range(1, len(intervals)):
@@ -377,12 +382,13 @@ def sort_holds(intervals: list[StillInterval], test: AgreeTest) -> Holds:
         inside = [i for i in ch if test.drifts(intervals[i])]
         pieces = len(ch) > 1 and not all(test.same_pose(intervals[i], intervals[j])
                                          for i, j in itertools.combinations(ch, 2))
-        for i in ch if inside or pieces else []:
-            drifting[i] = ("its first and second halves differ beyond the noise" if i in inside
-                           else f"{len(ch)} still pieces with no move between them differ "
-                                "beyond the noise")
+        if inside or pieces:
+            drifting.append((ch, f"{len(ch)} still piece(s) with no move between them that "
+                                 "differ beyond the noise" if pieces else
+                                 "its first and second halves differ beyond the noise"))
+    dropped = {i for ch, _ in drifting for i in ch}
     groups: list[list[int]] = []
-    for i in (i for i in range(len(intervals)) if i not in drifting):
+    for i in (i for i in range(len(intervals)) if i not in dropped):
         for g in groups:
             if all(test.same_pose(intervals[i], intervals[j]) for j in g):
                 g.append(i)
@@ -598,11 +604,10 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
                                 "the board still at each view for about a second (at least "
                                 f"{min_scans} scans and two frames)")
     holds = sort_holds(intervals, AgreeTest(R, np.stack(blocks), sigma_s, float(floor_s), sigma_f))
-    for i, why in holds.drifting.items():
-        iv = intervals[i]
-        warn.append(f"the board moved slowly during the hold at {iv.t_start - clock0:.2f}.."
-                    f"{iv.t_end - clock0:.2f} s ({why}): not used as a view; hold the board "
-                    "still at each view")
+    for ch, why in holds.drifting:
+        warn.append(f"the board moved slowly during the hold at "
+                    f"{intervals[ch[0]].t_start - clock0:.2f}..{intervals[ch[-1]].t_end - clock0:.2f}"
+                    f" s ({why}): not used as a view; hold the board still at each view")
     if not holds.groups:
         raise DatasetError(bag, f"no still view: all {len(intervals)} still interval(s) drifted "
                                 f"(the board moved slowly while held; {noise_text}); hold the "
@@ -667,7 +672,7 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
             "still_intervals": [{"index": i, "t_start_s": round(iv.t_start - clock0, 6),
                                  "t_end_s": round(iv.t_end - clock0, 6), "scans": len(iv.scans),
                                  "frames": len(iv.frames), "view": view_of.get(i),
-                                 **({"drifting": holds.drifting[i]} if i in holds.drifting else {})}
+                                 **({"drifting": holds.why(i)} if holds.why(i) else {})}
                                 for i, iv in enumerate(intervals)],
             "views": [{"name": v.name, "t_s": round(v.t_s, 6),
                        "t_start_s": round(v.t_start_s, 6), "t_end_s": round(v.t_end_s, 6),
@@ -678,4 +683,5 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return ViewsResult(out, views, n_srun, n_frun, float(np.median(sigma_b)), sigma_f, topics,
-                       camera is not None, warn, len(intervals), len(holds.drifting))
+                       camera is not None, warn, len(intervals),
+                       sum(len(ch) for ch, _ in holds.drifting))
