@@ -93,7 +93,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", type=Path)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--drift-mm", type=float, default=8.0)
+    ap.add_argument("--drift-mm", type=float, default=3.0)
     ap.add_argument("--drift-sweep", type=float, nargs="*", default=None,
                     help="only drifting recordings, one per drift (mm per hold), first seed")
     a = ap.parse_args()
