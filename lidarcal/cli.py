@@ -174,6 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
                                                "the only one, or the image topic's)")
     s.add_argument("--min-scans", type=int, default=None,
                    help="--views: a still interval holds at least this many scans (default 5)")
+    s.add_argument("--pattern", type=_pattern, default=None,
+                   help="--views: the board's inner corners, e.g. 8x5 (writes board.json, read "
+                        "by `lidarcal planes`)")
+    s.add_argument("--square-mm", type=_positive, default=None,
+                   help="--views: the board's square side, mm (with --pattern)")
     s.add_argument("--scan-topic", help="sensor_msgs/LaserScan topic (default: the only one)")
     s.add_argument("--stripe-topic", help="dark stripe frames, Image or CompressedImage "
                                           "(default: the image topic named *stripe*, or the "
@@ -345,7 +350,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
     if a.views:
         return _cmd_import_views(a, [k for k, v in turntable.items() if v is not None])
     views_only = {"--image-topic": a.image_topic, "--camera-info-topic": a.camera_info_topic,
-                  "--min-scans": a.min_scans}
+                  "--min-scans": a.min_scans, "--pattern": a.pattern, "--square-mm": a.square_mm}
     given = [k for k, v in views_only.items() if v is not None]
     if given:
         raise DatasetError(a.bag, f"{given[0]} is for a one-board recording: add --views")
@@ -378,13 +383,17 @@ def _cmd_import_views(a: argparse.Namespace, turntable_options: list[str]) -> in
     res = import_views(a.bag, a.out, scan_topic=a.scan_topic, image_topic=a.image_topic,
                        camera_info_topic=a.camera_info_topic,
                        min_scans=5 if a.min_scans is None else a.min_scans,
-                       overwrite=a.overwrite, progress=not a.no_progress and sys.stderr.isatty())
+                       pattern=a.pattern, square_mm=a.square_mm, overwrite=a.overwrite,
+                       progress=not a.no_progress and sys.stderr.isatty())
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    print(f"{len(res.views)} still interval(s) -> {len(res.views)} views ({res.scan_runs} still "
+    merged = sum(len(v.intervals) - 1 for v in res.views)
+    print(f"{res.n_intervals} still interval(s) -> {len(res.views)} views ({merged} merged into "
+          f"a view of the same pose, {res.n_drifting} drifting; {res.scan_runs} still "
           f"run(s) of the scans, {res.frame_runs} of the frames; scan noise "
           f"{res.scan_noise_mm:.3g} mm, frame noise {res.frame_noise:.3g} gray levels); "
-          f"camera.json {'written' if res.camera_written else 'not written'}")
+          f"camera.json {'written' if res.camera_written else 'not written'}"
+          + ("; board.json written" if a.pattern is not None else ""))
     print(f"wrote views {res.out}")
     return 0
 

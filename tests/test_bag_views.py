@@ -21,7 +21,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lidarcal.io.bag_views import beam_noise_mm, camera_from_info, import_views, still_runs
+from lidarcal.io.bag_views import (
+    K_SIGMA,
+    AgreeTest,
+    StillInterval,
+    beam_noise_mm,
+    camera_from_info,
+    import_views,
+    sort_holds,
+    still_runs,
+)
 from lidarcal.io.dataset import DatasetError
 from lidarcal.io.pairs import read_view_pairs
 from lidarcal.synthetic.bag import T0_NS
@@ -95,15 +104,20 @@ def assert_views_are_the_holds(folder: Path, bag: Path, holds, rig, n_scans_min:
 
 
 def test_import_views_cli_then_planes(bags, rig, tmp_path):
-    """The documented commands: ``lidarcal import rec.bag --views --out VIEWS`` then
-    ``lidarcal planes VIEWS --pattern 8x5 --square-mm 80 --camera VIEWS/camera.json --out OUT``."""
+    """The documented commands: ``lidarcal import rec.bag --views --pattern 8x5 --square-mm 80
+    --out VIEWS`` then ``lidarcal planes VIEWS --camera VIEWS/camera.json --out OUT`` (the
+    board read from VIEWS/board.json)."""
     bag, holds = bags["ros1_raw"]
     views = tmp_path / "VIEWS"
-    p = lidarcal("import", bag, "--views", "--out", views)
+    p = lidarcal("import", bag, "--views", "--pattern", "8x5", "--square-mm", "80", "--out", views)
     assert p.returncode == 0, p.stderr
     assert "warning" not in p.stderr, p.stderr
-    assert f"{N_VIEWS} still interval(s) -> {N_VIEWS} views" in p.stdout
-    assert "camera.json written" in p.stdout
+    assert f"{N_VIEWS} still interval(s) -> {N_VIEWS} views (0 merged" in p.stdout
+    assert "camera.json written" in p.stdout and "board.json written" in p.stdout
+    assert json.loads((views / "board.json").read_text()) == {"inner_corners": [8, 5],
+                                                              "square_mm": 80.0}
+    meta = json.loads((views / "views.json").read_text())
+    assert [iv["view"] for iv in meta["still_intervals"]] == [v["name"] for v in meta["views"]]
     assert_views_are_the_holds(views, bag, holds, rig)
     cam = json.loads((views / "camera.json").read_text())
     np.testing.assert_allclose(cam["K"], rig.camera.K)
@@ -112,8 +126,7 @@ def test_import_views_cli_then_planes(bags, rig, tmp_path):
     assert not [f for f in views.parent.iterdir() if f.name.startswith(".")]  # no temp folder left
 
     out = tmp_path / "OUT"
-    p = lidarcal("planes", views, "--pattern", "8x5", "--square-mm", "80", "--camera",
-                 views / "camera.json", "--out", out, "--no-figures")
+    p = lidarcal("planes", views, "--camera", views / "camera.json", "--out", out, "--no-figures")
     assert p.returncode == 0, p.stderr
     doc = json.loads((out / "extrinsics.json").read_text())
     assert all(v["used"] for v in doc["views"]) and len(doc["views"]) == N_VIEWS
@@ -184,7 +197,7 @@ def test_bad_recordings_are_one_line_and_write_nothing(small_rig, tmp_path):
     assert not out.exists()
     p = lidarcal("import", bag, "--views", "--out", out, "--image-topic", "/camera2/image_raw")
     assert p.returncode == 0, p.stderr
-    assert "only 3 still interval(s)" in p.stderr and "3 views" in p.stdout
+    assert "only 3 view(s)" in p.stderr and "3 views" in p.stdout
     assert len(list(out.glob("*.csv"))) == 3
     # an existing output folder needs --overwrite
     p = lidarcal("import", bag, "--views", "--out", out, "--image-topic", "/camera2/image_raw")
@@ -199,6 +212,84 @@ def test_bad_recordings_are_one_line_and_write_nothing(small_rig, tmp_path):
     _one_line_error(p, "moving.bag", "no still interval", "hold the board still")
     assert not (tmp_path / "none").exists()
     assert not [f.name for f in tmp_path.iterdir() if f.name.startswith(".")]
+
+
+def _planes_vs_truth(folder: Path, rig) -> tuple[np.ndarray, np.ndarray]:
+    """|error| / sigma of ``lidarcal planes`` on a views folder: rotation (x, y, z), T (x, y, z)."""
+    from lidarcal.planes import run_planes
+
+    res = run_planes(folder, folder / "camera.json", rig.board)
+    assert all(res.used)
+    d_rot = np.degrees(Rotation.from_matrix(res.R @ rig.R.T).as_rotvec())
+    return (np.abs(d_rot) / np.array(res.uncertainty.rotation_deg, float),
+            np.abs(res.T - rig.T) / np.array(res.uncertainty.translation_mm, float))
+
+
+def test_a_pose_held_twice_is_one_view(tmp_path):
+    # the board paused twice at view 1 (carried 150 mm sideways and back between the holds)
+    # and brought back exactly to view 0 at the end: 7 holds of 5 poses -> 5 views, each
+    # merged view the union of its holds' scans (median noise of 2n scans) and one frame
+    rig = simulate_oneboard(2, 5)
+    bag = tmp_path / "twice.bag"
+    order = [0, 1, 1, 2, 3, 0, 4]
+    holds = write_oneboard_bag(rig, bag, seed=7, order=order, hold_s=0.8)
+    res = import_views(bag, tmp_path / "v")
+    assert res.n_intervals == 7 and res.n_drifting == 0 and len(res.views) == 5
+    assert [[holds[i].index for i in v.intervals] for v in res.views] == \
+        [[0, 0], [1, 1], [2], [3], [4]]
+    assert not [w for w in res.warnings if "moved slowly" in w]
+    meta = json.loads((tmp_path / "v" / "views.json").read_text())
+    assert [iv["view"] for iv in meta["still_intervals"]] == \
+        [meta["views"][k]["name"] for k in (0, 1, 1, 2, 3, 0, 4)]
+    pairs = read_view_pairs(tmp_path / "v")
+    for pair, v in zip(pairs, meta["views"]):
+        truth = true_ranges_mm(rig, rig.views[holds[v["intervals"][0]].index].rect)
+        d = (pair.range_mm - truth)[np.isfinite(truth)]
+        n = v["scans"]
+        assert n >= 24 * len(v["intervals"])
+        sd = math.sqrt(rig.range_noise_mm**2 * math.pi / (2 * n) + 1 / 12)
+        assert np.sqrt(np.mean(d**2)) < 1.25 * sd, (pair.name, np.sqrt(np.mean(d**2)), sd)
+    r, t = _planes_vs_truth(tmp_path / "v", rig)
+    assert r.max() < 4 and t.max() < 4, (r, t)
+
+
+@pytest.mark.parametrize("drift_mm", [3.0, 40.0])
+def test_a_drifting_hold_is_not_a_view(drift_mm, tmp_path):
+    # holds 1, 3 and 5 of 6 slide by drift_mm while "held" (3 mm: the range noise; consecutive
+    # scans and frames agree, the drift only adds up): none of them gives a view, every other
+    # hold gives exactly one
+    rig = simulate_oneboard(2, 6)
+    bag = tmp_path / "drift.bag"
+    holds = write_oneboard_bag(rig, bag, seed=12, drift_mm=drift_mm, drift_holds=[1, 3, 5])
+    res = import_views(bag, tmp_path / "v")
+    t0 = _bag_start_s(bag)
+    inside = [[i for i, h in enumerate(holds) if h.t_start_s - 0.03 <= v.t_start_s + t0
+               and v.t_end_s + t0 <= h.t_end_s + 0.03] for v in res.views]
+    assert inside == [[0], [2], [4]], (inside, res.warnings)
+    assert all(v.n_scans >= 30 for v in res.views)
+    meta = json.loads((tmp_path / "v" / "views.json").read_text())
+    dropped = [iv for iv in meta["still_intervals"] if iv["view"] is None]
+    assert len(dropped) == res.n_drifting and all("drifting" in iv for iv in dropped)
+    assert (sum("moved slowly" in w for w in res.warnings) > 0) == (res.n_drifting > 0)
+
+
+def test_bad_board_options_are_one_line(tmp_path):
+    bag = tmp_path / "x.bag"
+    bag.write_bytes(b"")
+    for args, needle in [(["--pattern", "8by5", "--square-mm", "80"], "--pattern: expected COLSxROWS"),
+                         (["--pattern", "1x5", "--square-mm", "80"], "each >= 2"),
+                         (["--pattern", "8x5", "--square-mm", "0"], "--square-mm: expected a number > 0"),
+                         (["--pattern", "8x5", "--square-mm", "-3"], "--square-mm: expected a number > 0"),
+                         (["--pattern", "8x5"], "go together"),
+                         (["--square-mm", "80"], "go together")]:
+        p = lidarcal("import", bag, "--views", "--out", tmp_path / "o", *args)
+        _one_line_error(p, needle)
+    p = lidarcal("import", bag, "--rig", tmp_path / "RIG.json", "--pattern", "8x5",
+                 "--out", tmp_path / "o")
+    _one_line_error(p, "--pattern is for a one-board recording")
+    with pytest.raises(DatasetError, match="--square-mm must be a number > 0"):
+        import_views(bag, tmp_path / "o", pattern=(8, 5), square_mm=float("nan"))
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["x.bag"]
 
 
 def test_options_of_the_two_modes_do_not_mix(tmp_path):
@@ -283,6 +374,59 @@ def test_still_runs_are_the_holds(seed):
         # every reading within 4 sigma (x sqrt(1 + pi / 10)) of the run's median, plus noise
         assert np.ptp(seq[a:b + 1]) <= 2 * 4 * (1 + math.sqrt(1 + math.pi / 10)) * noise
     assert not any(b1 >= a2 for (_, b1), (a2, _) in itertools.pairwise(runs))  # disjoint, in order
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sort_holds_merges_one_pose_and_drops_drift(seed):
+    # one reading = a scan (60 beams, sigma 3 mm) and a frame's block means (6 x 8, sigma 0.5)
+    # per step. Holds of 30 readings: A, B, B again after an excursion, C sliding by 10 sigma,
+    # E sliding by 6 sigma in two pieces of 2 sigma each (their halves agree) with 3 readings
+    # between them and no move, A again, D; moves of 10 readings between the holds.
+    # -> views [A, A], [B, B], [D]; the three drifting intervals dropped
+    rng = np.random.default_rng(seed)
+    sig_s, sig_f = 3.0, 0.5
+    poses = {k: (rng.uniform(1000, 3000, 60), rng.uniform(20, 230, (6, 8))) for k in "ABCDEX"}
+    scans, blocks, intervals = [], [], []
+
+    def add(pose_a, pose_b, n, hold: bool):
+        (sa, fa), (sb, fb) = poses[pose_a], poses[pose_b]
+        first = len(scans)
+        for u in np.linspace(0, 1, n):
+            scans.append((1 - u) * sa + u * sb + rng.normal(0, sig_s, 60))
+            blocks.append((1 - u) * fa + u * fb + rng.normal(0, sig_f, (6, 8)))
+        if hold:
+            idx = list(range(first, len(scans)))
+            intervals.append(StillInterval(first, len(scans) - 1, idx, idx, idx[n // 2]))
+
+    # a slide of 10 sigma: C -> C' and E -> E' (the primed poses 10 sigma away)
+    poses["C'"] = (poses["C"][0] + 10 * sig_s, poses["C"][1] + 10 * sig_f)
+    for k, m in (("E1", 2), ("E2", 4), ("E'", 6)):
+        poses[k] = (poses["E"][0] + m * sig_s, poses["E"][1] + m * sig_f)
+    plan = [("A", 30), ("B", 30), ("X", 0), ("B", 30), ("C", 30), ("E", 15), ("A", 30),
+            ("D", 30)]
+    prev = None
+    for pose, n in plan:
+        if prev is not None:
+            add(prev, pose, 10, False)  # carried
+        if pose == "C":
+            add("C", "C'", 30, True)
+            prev = "C'"
+        elif pose == "E":
+            add("E", "E1", 15, True)
+            add("E1", "E2", 3, False)  # a stretch the still runs left out, no move
+            add("E2", "E'", 15, True)
+            prev = "E'"
+        else:
+            if n:
+                add(pose, pose, n, True)
+            prev = pose
+    test = AgreeTest(np.array(scans), np.array(blocks), np.full(60, K_SIGMA * sig_s), 0.0, sig_f)
+    holds = sort_holds(intervals, test)
+    # intervals: 0 A, 1 B, 2 B, 3 C (slides), 4 E1, 5 E2 (pieces of one slide), 6 A, 7 D
+    assert holds.groups == [[0, 6], [1, 2], [7]], holds
+    assert [ch for ch, _ in holds.drifting] == [[3], [4, 5]]
+    assert "halves differ" in holds.why(3) and "2 still piece(s)" in holds.why(5)
+    assert holds.why(0) is None
 
 
 def _info(model: str, d, k=(650.0, 0, 320, 0, 650, 240, 0, 0, 1), size=(640, 480), ros1=False,

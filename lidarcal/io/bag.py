@@ -27,20 +27,13 @@ time_increment``. See ``docs/ros-bags.md``.
 
 from __future__ import annotations
 
-import gzip
-import io
-import math
 import os
 import shutil
-import tempfile
-import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from ..geometry import MAD_TO_SIGMA
 from ..stationary import (
     default_min_duration_s,
     default_tolerance_deg,
@@ -48,214 +41,45 @@ from ..stationary import (
     find_stationary,
     median_period_s,
 )
+from .bag_angles import AngleStream, read_angles
+from .bag_combine import CLIP_SIGMAS, combine_frames, combine_scans
 from .bag_frames import COMPRESSED, LitSplit, frame_brightness, image_from_msg, split_lit_dark
-from .dataset import (
-    DATASET_FORMAT,
-    DatasetError,
-    current_umask,
-    decode_image,
-    write_json_atomic,
+from .bag_read import (
+    ANGLE_TYPES,
+    FLOAT64,
+    IMAGE,
+    IMAGE_TYPES,
+    JOINTSTATE,
+    LASERSCAN,
+    Clock,
+    Scan,
+    connections,
+    open_bag,
+    pick_topic,
+    reader_errors,
+    scan_from_msg,
+    unreadable_bag,
 )
+from .bag_write import (
+    copy_intrinsics,
+    finish_out,
+    prepare_out,
+    scan_csv_text,
+    sweep_csv_gz,
+    write_png,
+)
+from .dataset import DATASET_FORMAT, DatasetError, decode_image, write_json_atomic
 from .rig import RigFile, read_rig
 
-LASERSCAN = "sensor_msgs/msg/LaserScan"
-IMAGE = "sensor_msgs/msg/Image"
-JOINTSTATE = "sensor_msgs/msg/JointState"
-FLOAT64 = "std_msgs/msg/Float64"
-IMAGE_TYPES = (IMAGE, COMPRESSED)
-ANGLE_TYPES = (JOINTSTATE, FLOAT64)
+# the names the bag readers used to hold, still importable from here
+__all__ = [
+    "ANGLE_TYPES", "CLIP_SIGMAS", "COMPRESSED", "FLOAT64", "IMAGE", "IMAGE_TYPES", "JOINTSTATE",
+    "LASERSCAN", "AngleStream", "Clock", "ImportResult", "ImportedPosition", "Scan",
+    "combine_frames", "combine_scans", "image_from_msg", "import_bag", "open_bag", "pick_topic",
+    "read_angles", "scan_csv_text", "scan_from_msg", "sweep_csv_gz", "unreadable_bag",
+]
+
 _SLACK_S = 5.0  # a position is combined once the bag's log time is this far past its end
-
-
-# ----------------------------------------------------------------------------- messages
-
-
-@dataclass(frozen=True)
-class Scan:
-    """One LaserScan: ascending beam angles, ranges in mm (NaN = invalid), beam times (s)."""
-
-    t0: float  # first beam
-    t1: float  # last beam
-    angle_min_deg: float
-    angle_step_deg: float
-    angle_max_msg_deg: float
-    range_min_mm: float
-    range_max_mm: float
-    range_mm: np.ndarray  # (n,), ascending angle
-
-    @property
-    def t_mid(self) -> float:
-        return 0.5 * (self.t0 + self.t1)
-
-
-_FOREIGN_CLOCK_S = 1.0  # stamps further than this from the log times are on another clock
-
-
-def _header_s(msg) -> float:
-    hdr = getattr(msg, "header", None)
-    return 0.0 if hdr is None else int(hdr.stamp.sec) + int(hdr.stamp.nanosec) * 1e-9
-
-
-class Clock:
-    """Message times: ``header.stamp`` per topic while it is on the bag's clock, else log time.
-
-    Decided on a topic's first message: no header or a zero stamp -> ``"log"``; a stamp
-    more than 1 s from the message's log time (a sensor clock, not the recorder's) ->
-    ``"log"`` with a note; otherwise ``"header"``.
-    """
-
-    def __init__(self) -> None:
-        self.mode: dict[str, str] = {}
-        self.notes: list[str] = []
-
-    def time(self, topic: str, msg, log_ns: int) -> float:
-        log = log_ns * 1e-9
-        st = _header_s(msg)
-        mode = self.mode.get(topic)
-        if mode is None:
-            mode = "header" if st > 0 and abs(st - log) <= _FOREIGN_CLOCK_S else "log"
-            if st > 0 and mode == "log":
-                self.notes.append(f"{topic}: header stamps are {st - log:+.3g} s from the bag's "
-                                  "receive times (another clock); its receive times are used")
-            self.mode[topic] = mode
-        return st if mode == "header" and st > 0 else log
-
-
-def scan_from_msg(msg, t0: float) -> Scan:
-    """A LaserScan in the contract's units: ascending angles (deg), ranges in mm, invalid = NaN."""
-    r = np.asarray(msg.ranges, dtype=np.float64)
-    n = r.size
-    rmin, rmax = float(msg.range_min), float(msg.range_max)
-    bad = ~np.isfinite(r) | (r <= 0) | (r < rmin) | (r > rmax)
-    r = np.where(bad, np.nan, r * 1000.0)
-    amin, inc = math.degrees(msg.angle_min), math.degrees(msg.angle_increment)
-    if inc < 0:  # clockwise scanner: reverse to ascending angles
-        r = r[::-1]
-        amin, inc = amin + (n - 1) * inc, -inc
-    span = abs(float(msg.time_increment)) * max(n - 1, 0)
-    return Scan(t0, t0 + span, amin, inc, math.degrees(msg.angle_max), rmin * 1000.0,
-                rmax * 1000.0, r)
-
-
-# ----------------------------------------------------------------------------- topics
-
-
-def _topics_text(reader) -> str:
-    return ", ".join(f"{t} ({i.msgtype.replace('/msg/', '/')})" for t, i in sorted(reader.topics.items()))
-
-
-def pick_topic(reader, given: str | None, types: tuple[str, ...], role: str, option: str,
-               bag: Path, prefer: str | None = None, required: bool = True) -> str | None:
-    """The topic for ``role``: ``given`` (or ``given/compressed``) or the only topic of ``types``
-    (among several, the one whose name contains ``prefer``)."""
-    topics = reader.topics
-    if given is not None:
-        for name in (given, given.rstrip("/") + "/compressed"):
-            if name in topics:
-                if topics[name].msgtype not in types:
-                    raise DatasetError(bag, f"{option} {name} is {topics[name].msgtype}, expected "
-                                            f"{' or '.join(types)}; the bag has: {_topics_text(reader)}")
-                return name
-        raise DatasetError(bag, f"no topic {given} ({option}); the bag has: {_topics_text(reader)}")
-    cands = sorted(t for t, i in topics.items() if i.msgtype in types)
-    # a raw and a compressed copy of one stream (image_transport): one stream, the raw one
-    cands = [t for t in cands if not (t.endswith("/compressed") and t[:-11] in cands)]
-    if prefer is not None and len(cands) > 1:
-        named = [t for t in cands if prefer in t.lower()]
-        cands = named if named else cands
-    if len(cands) == 1:
-        return cands[0]
-    if not required and not cands:
-        return None
-    what = "no" if not cands else f"{len(cands)}"
-    raise DatasetError(bag, f"{what} {role} topics ({' or '.join(types)}); name it with {option}; "
-                            f"the bag has: {_topics_text(reader)}")
-
-
-def _connections(reader, topic: str | None) -> list:
-    return [c for c in reader.connections if c.topic == topic] if topic else []
-
-
-@dataclass
-class AngleStream:
-    t_s: np.ndarray  # sorted
-    psi_deg: np.ndarray
-
-
-def read_angles(reader, topic: str, joint: str | None, unit: str, bag: Path,
-                clock: Clock) -> AngleStream:
-    """All turntable readings of ``topic`` (one pass over that topic only), in degrees."""
-    conns = _connections(reader, topic)
-    msgtype = conns[0].msgtype
-    ts, ps = [], []
-    idx: int | None = None
-    several: dict[str, tuple[list[float], list[float]]] = {}  # joint -> (t, psi) to choose from
-    seen: set[str] = set()
-    for conn, log_ns, raw in reader.messages(connections=conns):
-        msg = reader.deserialize(raw, conn.msgtype)
-        if msgtype == FLOAT64:
-            val = float(msg.data)
-        else:
-            names, pos = list(msg.name), np.asarray(msg.position, dtype=float)
-            if joint is None:  # every joint by name (publishers may send different subsets)
-                t = clock.time(topic, msg, log_ns)
-                for nm, v in zip(names or [str(i) for i in range(len(pos))], pos.tolist()):
-                    if math.isfinite(v):
-                        several.setdefault(nm, ([], []))[0].append(t)
-                        several[nm][1].append(math.degrees(v))
-                continue
-            if idx is None or idx >= len(names) or names[idx] != joint:
-                seen.update(names)
-                if joint not in names:  # another publisher's joints
-                    continue
-                idx = names.index(joint)
-            if idx >= len(pos):
-                continue
-            val = float(pos[idx])
-        if not math.isfinite(val):
-            continue
-        ts.append(clock.time(topic, msg, log_ns))
-        ps.append(val if unit == "deg" and msgtype == FLOAT64 else math.degrees(val))
-    if several and not ts:
-        name = next(iter(several)) if len(several) == 1 else _turntable_joint(several, topic, bag)
-        if len(several) > 1:
-            clock.notes.append(f"{topic}: joint {name!r} is the turntable (the only joint of "
-                               f"{', '.join(several)} that holds and steps); --joint names another")
-        ts, ps = several[name]
-    if joint is not None and msgtype == JOINTSTATE and not ts:
-        raise DatasetError(bag, f"{topic}: no joint {joint!r} (--joint); its joints: "
-                                f"{', '.join(sorted(seen)) or '(unnamed)'}")
-    if len(ts) < 3:
-        raise DatasetError(bag, f"{topic}: {len(ts)} usable angle reading(s); need a turntable "
-                                "angle stream (--angle-topic, --joint)")
-    t, p = np.asarray(ts), np.asarray(ps)
-    order = np.argsort(t, kind="stable")
-    return AngleStream(t[order], p[order])
-
-
-def _turntable_joint(joints: dict[str, tuple[list[float], list[float]]], topic: str,
-                     bag: Path) -> str:
-    """The joint that moves like a turntable: its readings hold still at three or more
-    distinct angles (:func:`lidarcal.stationary.find_stationary` with the default tolerance
-    and three reading periods). Exactly one such joint, or an error listing them all."""
-    steps = {}
-    for name, (t, p) in joints.items():
-        t_a, p_a = np.asarray(t), np.asarray(p)
-        order = np.argsort(t_a, kind="stable")
-        t_a, p_a = t_a[order], p_a[order]
-        if t_a.size < 3:
-            steps[name] = 0
-            continue
-        tol = default_tolerance_deg(p_a)
-        periods = find_stationary(t_a, p_a, tol, 3.0 * median_period_s(t_a))
-        steps[name] = len({round(q.psi_deg / (2.0 * tol)) for q in periods})
-    stepping = [n for n, k in steps.items() if k >= 3]
-    if len(stepping) == 1:
-        return stepping[0]
-    seen = ", ".join(f"{n} ({k} still angle{'s' if k != 1 else ''})" for n, k in steps.items())
-    raise DatasetError(bag, f"{topic} has {len(joints)} joints ({seen}) and "
-                            f"{'none' if not stepping else len(stepping)} of them steps like a "
-                            "turntable; name the turntable with --joint")
 
 
 # ----------------------------------------------------------------------------- import
@@ -291,80 +115,6 @@ class _Acc:
     board: list[np.ndarray] = field(default_factory=list)
 
 
-def _fmt_range(v: float) -> str:
-    return f"{v:.1f}" if math.isfinite(v) else "0"
-
-
-def scan_csv_text(angles_deg: np.ndarray, range_mm: np.ndarray) -> str:
-    """``scans/NNNN.csv``: angle_deg (6 decimals), range_mm (0.1 mm; 0 = no return)."""
-    return "angle_deg,range_mm\n" + "".join(
-        f"{a:.6f},{_fmt_range(r)}\n" for a, r in zip(angles_deg.tolist(), range_mm.tolist()))
-
-
-#: a still scan's return farther than this many robust sigmas from its beam's median is left
-#: out of the beam's mean (:func:`combine_scans`): false rejection ~1e-4 for Gaussian noise
-CLIP_SIGMAS = 4.0
-
-
-def combine_scans(ranges: list[np.ndarray]) -> np.ndarray:
-    """Per-beam clipped mean of the valid returns of a position's still scans (NaN where no scan
-    has one).
-
-    The mean of the returns within ``CLIP_SIGMAS`` robust sigmas of the beam's median: a
-    median-anchored trimmed mean (Huber, *Robust Statistics*, 1981, ch. 3). The median alone
-    wastes information: for Gaussian range noise its variance is ``pi / 2`` of the mean's for
-    many scans (1.35x for 3 scans, 1.43x for 5, 1.5x for 20), so every line fitted to the
-    combined scan (eqs. 7-12) is that much noisier. The clip keeps the median's robustness:
-    a spurious return, or a beam flickering between the board and the wall behind it, lies
-    far from its beam's median and is left out, so one bad scan of three is rejected as the
-    median rejects it. The noise sigma is pooled over the whole stack, from the differences
-    of consecutive valid returns of each beam (``1.4826 median |d| / sqrt 2``: unbiased for
-    any number of scans, two returns per outlier); ranges quantised much coarser than their
-    noise give sigma 0 and the mean of the returns equal to the median, i.e. the median.
-    """
-    stack = np.vstack(ranges).astype(float)
-    stack[~np.isfinite(stack)] = np.nan
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN beams stay NaN
-        med = np.nanmedian(stack, axis=0)
-        valid = np.isfinite(stack)
-        d = np.concatenate([np.diff(stack[valid[:, j], j]) for j in range(stack.shape[1])]
-                           ) if len(stack) > 1 else np.zeros(0)
-        sigma = MAD_TO_SIGMA * float(np.median(np.abs(d))) / math.sqrt(2.0) if len(d) else 0.0
-        keep = valid & (np.abs(stack - med) <= CLIP_SIGMAS * sigma)
-        n = keep.sum(axis=0)
-        mean = np.where(keep, stack, 0.0).sum(axis=0) / np.maximum(n, 1)
-    return np.where(n > 0, mean, med)
-
-
-def combine_frames(frames: list[np.ndarray]) -> np.ndarray:
-    """Per-pixel median of 8-bit frames (an even count: the two middle values' mean, half up).
-
-    Up to 25 frames are sorted per pixel by an odd-even transposition network of
-    ``np.minimum``/``np.maximum`` on whole frames (contiguous, ~10x faster than
-    ``np.median`` along a stacked axis); more fall back to ``np.median``.
-    """
-    k = len(frames)
-    if k == 1:
-        return frames[0]
-    if k > 25:
-        stack = np.stack(frames).astype(np.float32)
-        return np.floor(np.median(stack, axis=0) + 0.5).astype(np.uint8)
-    s = list(frames)
-    for i in range(k):
-        for j in range(i % 2, k - 1, 2):
-            s[j], s[j + 1] = np.minimum(s[j], s[j + 1]), np.maximum(s[j], s[j + 1])
-    if k % 2:
-        return s[k // 2]
-    a, b = s[k // 2 - 1].astype(np.uint16), s[k // 2]
-    return ((a + b + 1) // 2).astype(np.uint8)
-
-
-def _write_png(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), img):
-        raise OSError(f"{path}: cannot write image")
-
-
 class _ScanGeometry:
     """The beam layout of the first scan; every later scan must match it."""
 
@@ -390,62 +140,6 @@ class _ScanGeometry:
                                     f"({self.n} beams from {self.s.angle_min_deg:g} deg, then "
                                     f"{s.range_mm.size} from {s.angle_min_deg:g} deg); record one "
                                     "LiDAR configuration per bag")
-
-
-def open_bag(path: Path):
-    """An open ``rosbags`` AnyReader on a ROS 1 .bag (file) or a ROS 2 bag (folder)."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
-
-    if not path.exists():
-        raise DatasetError(path, "no such bag (a ROS 1 .bag file or a ROS 2 bag folder)")
-    try:
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
-        reader.open()
-    except (AnyReaderError, OSError, ValueError, KeyError) as e:
-        msg = " ".join(str(e).split()) or type(e).__name__
-        raise DatasetError(path, f"cannot be read as a ROS 1 or ROS 2 bag ({msg}); if the "
-                                 "recording was cut short, reindex it (rosbag reindex, "
-                                 "ros2 bag reindex)") from None
-    return reader
-
-
-def unreadable_bag(bag: Path, e: Exception) -> DatasetError:
-    """The one-line error for a bag the reader gave up on (one of :func:`_reader_errors`)."""
-    msg = " ".join(str(e).split()) or type(e).__name__
-    return DatasetError(bag, f"cannot be read to the end ({msg}); the bag may be truncated "
-                             "or corrupt: reindex it (rosbag reindex / ros2 bag reindex)")
-
-
-def _reader_errors() -> tuple[type[Exception], ...]:
-    from rosbags.highlevel import AnyReaderError
-    from rosbags.rosbag1 import ReaderError as ReaderError1
-    from rosbags.rosbag2 import ReaderError as ReaderError2
-    from rosbags.serde import SerdeError
-
-    return (AnyReaderError, ReaderError1, ReaderError2, SerdeError, EOFError)
-
-
-def _prepare_out(out: Path, overwrite: bool) -> Path:
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
-        raise DatasetError(out, "exists and is not empty; choose another --out or pass --overwrite")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.import-", dir=out.parent))
-    os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp's 0700 would survive the rename
-    return tmp
-
-
-def _finish_out(tmp: Path, out: Path) -> None:
-    old = None
-    if out.exists():
-        if out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        else:
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
-    os.replace(tmp, out)
-    if old is not None:
-        shutil.rmtree(old) if old.is_dir() else old.unlink()
 
 
 def import_bag(bag: str | os.PathLike, rig: str | os.PathLike, out: str | os.PathLike, *,
@@ -486,7 +180,7 @@ def import_bag(bag: str | os.PathLike, rig: str | os.PathLike, out: str | os.Pat
             topics["board"] = None
         return _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image,
                        tolerance_deg, min_duration_s, frame_guard_s, overwrite, progress)
-    except _reader_errors() as e:
+    except reader_errors() as e:
         raise unreadable_bag(bag, e) from None
     finally:
         reader.close()
@@ -501,7 +195,7 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
     if np.abs(angles.psi_deg).max() > 360.0:
         clock.notes.append(f"{topics['angle']}: angles reach {np.abs(angles.psi_deg).max():.0f} deg, "
                            "beyond a turn; if a Float64 angle is in degrees, pass --angle-unit deg")
-    scan_conns = _connections(reader, topics["scan"])
+    scan_conns = connections(reader, topics["scan"])
     scan_count = sum(c.msgcount for c in scan_conns)
     span = max(reader.duration * 1e-9, 1e-9)
     scan_period = span / max(scan_count - 1, 1)  # refined below from the stamps
@@ -526,11 +220,11 @@ def _import(reader, bag, rigf, out, topics, joint, angle_unit, board_image, tole
     lit = None
     if topics["board"] is not None and topics["board"] == topics["stripe"]:
         lit = _classify_frames(reader, bag, topics["stripe"], periods, frame_guard_s, clock, clock0)
-    tmp = _prepare_out(out, overwrite)
+    tmp = prepare_out(out, overwrite)
     try:
         result = _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_dur,
                          board_image, progress, tqdm, clock0, frame_guard_s, clock, lit)
-        _finish_out(tmp, out)
+        finish_out(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -563,7 +257,7 @@ def _classify_frames(reader, bag: Path, topic: str, periods, guard: float, clock
     and dark by Otsu's threshold (:func:`lidarcal.io.bag_frames.split_lit_dark`)."""
     starts = np.array([p.t_start for p in periods])
     meds, ks = [], []
-    for conn, log_ns, raw in reader.messages(connections=_connections(reader, topic)):
+    for conn, log_ns, raw in reader.messages(connections=connections(reader, topic)):
         msg = reader.deserialize(raw, conn.msgtype)
         t = clock.time(topic, msg, log_ns)
         k = int(np.searchsorted(starts, t - guard, side="right")) - 1
@@ -596,7 +290,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
 
     (tmp / "stripes").mkdir()
     (tmp / "scans").mkdir()
-    conns = {role: _connections(reader, t) for role, t in topics.items()
+    conns = {role: connections(reader, t) for role, t in topics.items()
              if t and not (role == "board" and t == topics["stripe"])}  # one camera: once
     role_of = {c.id: (role, c) for role, cs in conns.items() if role != "angle" for c in cs}
     wanted = [c for role, cs in conns.items() if role != "angle" for c in cs]
@@ -618,7 +312,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
         if a.scans and a.frames:
             r = combine_scans(a.scans)
             (tmp / "scans" / f"p{k:06d}.csv").write_text(scan_csv_text(geom.angles, r))
-            _write_png(tmp / "stripes" / f"p{k:06d}.png", combine_frames(a.frames))
+            write_png(tmp / "stripes" / f"p{k:06d}.png", combine_frames(a.frames))
         done[k] = (len(a.scans), len(a.frames))
 
     total = sum(c.msgcount for c in wanted)
@@ -730,7 +424,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
     if board.shape[:2] != frame_shape[:2]:
         raise DatasetError(bag, f"board image is {board.shape[1]}x{board.shape[0]}, stripe frames "
                                 f"are {frame_shape[1]}x{frame_shape[0]}; both come from one camera")
-    _write_png(tmp / "board.png", board)
+    write_png(tmp / "board.png", board)
 
     # sweeps
     sweeps: dict[str, int] = {}
@@ -752,7 +446,7 @@ def _stream(reader, bag, rigf, tmp, topics, angles, periods, windows, tol, min_d
                                       f"{topics['stripe']} are {frame_shape[1]}x{frame_shape[0]}; "
                                       "give the camera block of the camera that recorded the bag")
     if rigf.intrinsics_dir is not None:
-        _copy_intrinsics(rigf.intrinsics_dir, tmp / "intrinsics")
+        copy_intrinsics(rigf.intrinsics_dir, tmp / "intrinsics")
 
     scan_period = median_period_s(np.asarray(scan_t))
     ds = {"format": DATASET_FORMAT, **rigf.base,
@@ -793,35 +487,3 @@ def _sweep_psi(rows: list[tuple[float, np.ndarray]], angles: AngleStream,
             continue
         out.append((psi, r))
     return out
-
-
-def sweep_csv_gz(rows: list[tuple[float, np.ndarray]], angles_deg: np.ndarray) -> bytes:
-    """``measure/NAME.csv.gz``: long form psi_deg, angle_deg, range_mm (0 = no return)."""
-    ang = [f"{a:.6f}" for a in angles_deg.tolist()]
-    parts = ["psi_deg,angle_deg,range_mm\n"]
-    for psi, r in rows:
-        p = f"{psi:.6f}"
-        parts.append("".join(f"{p},{a},{_fmt_range(v)}\n" for a, v in zip(ang, r.tolist())))
-    buf = io.BytesIO()
-    with gzip.GzipFile(filename="", mode="wb", fileobj=buf, mtime=0, compresslevel=6) as f:
-        f.write("".join(parts).encode())
-    return buf.getvalue()
-
-
-def _copy_intrinsics(src: Path, dst: Path) -> None:
-    """The intrinsics photos as ``intrinsics/*.png`` (other image formats converted)."""
-    dst.mkdir()
-    n = 0
-    for p in sorted(src.iterdir()):
-        ext = p.suffix.lower()
-        if ext == ".png":
-            shutil.copyfile(p, dst / p.name)
-        elif ext in (".jpg", ".jpeg", ".bmp", ".tif", ".tiff"):
-            img = decode_image(p, fix="copy the intrinsics photo again or remove it")
-            _write_png(dst / f"{p.stem}.png", img)
-        else:
-            continue
-        n += 1
-    if n == 0:
-        raise DatasetError(src, "holds no .png/.jpg/.bmp/.tif chessboard photos (RIG.json "
-                                "intrinsics); put the photos there or remove 'intrinsics'")

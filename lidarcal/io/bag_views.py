@@ -29,9 +29,19 @@ Still intervals are found from the data, with thresholds from the data's own noi
   of at least two frames (one frame cannot show that the image holds still).
 - a **still interval** is where a still run of scans and a still run of frames overlap
   and holds at least ``min_scans`` whole scans (beams ``stamp .. stamp + (n - 1)
-  time_increment``) and a frame. Per interval: the frame nearest its middle and the
-  per-beam median of its scans (the median of >= 3 scans reduces the noise by about
-  ``sqrt(pi / (2 n))`` and removes mixed returns and dropouts).
+  time_increment``) and a frame.
+- **holds** (:func:`sort_holds`, tests of :class:`AgreeTest`): two sets of still readings
+  show one pose when the per-beam medians of their scans and the per-block medians of
+  their frames agree within ``K_SIGMA`` times the noise of a difference of two medians.
+  An interval whose halves do not agree, and consecutive intervals with no move between
+  them (no two consecutive readings differ) that do not all agree, are a board that slid
+  while held: not used (a warning names the hold). The remaining intervals that agree
+  are one pose held twice (a pause, a return): one view, so that ``lidarcal planes`` does
+  not count one pose twice and report falsely small sigmas.
+- per view: the frame nearest the middle of its interval (of the merged intervals, the
+  one with the most frames) and the per-beam clipped mean of all its scans
+  (:func:`lidarcal.io.bag_combine.combine_scans`, at most the noise of their median,
+  ``sqrt(pi / (2 n))`` of one scan's; mixed returns and dropouts left out).
 
 Views are named ``view_NNN_tSS.SS`` (index, the frame's time in seconds from the bag's
 first message). Topics, clocks and invalid returns follow :mod:`lidarcal.io.bag`.
@@ -50,23 +60,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .bag import (
+from .bag_combine import combine_scans
+from .bag_frames import image_from_msg
+from .bag_read import (
     IMAGE_TYPES,
     LASERSCAN,
     Clock,
-    _connections,
-    _finish_out,
-    _prepare_out,
-    _reader_errors,
-    _write_png,
-    combine_scans,
+    connections,
     open_bag,
     pick_topic,
-    scan_csv_text,
+    reader_errors,
     scan_from_msg,
     unreadable_bag,
 )
-from .bag_frames import image_from_msg
+from .bag_write import finish_out, prepare_out, scan_csv_text, write_png
 from .dataset import DatasetError, write_json_atomic
 
 CAMERAINFO = "sensor_msgs/msg/CameraInfo"
@@ -270,6 +277,127 @@ def still_intervals(scan_runs, scan_t0, scan_t1, frame_runs, frame_t,
     return sorted(out, key=lambda s: s.t_start)
 
 
+# ----------------------------------------------------------------------------- holds
+
+
+@dataclass(frozen=True)
+class AgreeTest:
+    """Whether two sets of still readings (two still intervals, or the halves of one) show
+    the same pose within the measured noise: the per-beam medians of their scans do not
+    differ (:func:`scans_differ`) beyond ``K_SIGMA sqrt(c_a + c_b) sigma_b`` and the
+    per-block medians of their frames do not differ (:func:`frames_differ`) beyond
+    ``K_SIGMA sqrt(c_a + c_b) sigma_f``, with ``c`` the variance of a median of ``n``
+    readings in units of one reading's (1, 1/2, ``pi / (2 n)``: :func:`_median_noise_factor`);
+    the floors of the still runs (1.5 range quanta, ``MIN_FRAME_THRESHOLD``) apply."""
+
+    scans: np.ndarray  # (m, n) ranges, mm, time order
+    blocks: np.ndarray  # (k, h, w) frames' block means, time order
+    sigma_s: np.ndarray  # K_SIGMA sigma_b per beam, mm
+    floor_s: float
+    sigma_f: float  # frames' block noise, gray levels
+    _medians: dict = field(default_factory=dict, repr=False)  # (kind, indices) -> median
+
+    def _median(self, kind: str, idx) -> np.ndarray:
+        key = (kind, tuple(idx))
+        if key not in self._medians:
+            self._medians[key] = (_nanmedian(self.scans[list(idx)]) if kind == "scans"
+                                  else np.median(self.blocks[list(idx)], axis=0))
+        return self._medians[key]
+
+    def agree(self, scans_a, frames_a, scans_b, frames_b) -> bool:
+        def c(n: int) -> float:
+            return _median_noise_factor(n) ** 2 - 1.0
+
+        f = math.sqrt(c(len(scans_a)) + c(len(scans_b)))
+        if scans_differ(self._median("scans", scans_a), self._median("scans", scans_b),
+                        np.maximum(f * self.sigma_s, self.floor_s)):
+            return False
+        if not len(frames_a) or not len(frames_b):
+            return True
+        f = math.sqrt(c(len(frames_a)) + c(len(frames_b)))
+        return not frames_differ(self._median("frames", frames_a),
+                                 self._median("frames", frames_b),
+                                 max(f * K_SIGMA * self.sigma_f, MIN_FRAME_THRESHOLD))
+
+    def same_pose(self, a: StillInterval, b: StillInterval) -> bool:
+        return self.agree(a.scans, a.frames, b.scans, b.frames)
+
+    def drifts(self, iv: StillInterval) -> bool:
+        """Whether the first and second halves of an interval's scans (and of its frames)
+        differ: a board that slid during the hold, slower than the still runs notice."""
+        h, g = len(iv.scans) // 2, len(iv.frames) // 2
+        return not self.agree(iv.scans[:h], iv.frames[:g], iv.scans[h:], iv.frames[g:])
+
+    def moved_between(self, a: StillInterval, b: StillInterval) -> bool:
+        """Whether two consecutive scans, or two consecutive frames, between the end of
+        ``a`` and the start of ``b`` differ (the still runs' test of a reading against the
+        one before it): the board was carried, not only drifting, between the two."""
+        thr = np.maximum(math.sqrt(2.0) * self.sigma_s, self.floor_s)
+        if any(scans_differ(self.scans[q + 1], self.scans[q], thr)
+               for q in range(a.scans[-1], b.scans[0])):
+            return True
+        thr_f = max(math.sqrt(2.0) * K_SIGMA * self.sigma_f, MIN_FRAME_THRESHOLD)
+        return any(frames_differ(self.blocks[q + 1], self.blocks[q], thr_f)
+                   for q in range(a.frames[-1], b.frames[0]))
+
+
+@dataclass(frozen=True)
+class Holds:
+    """The still intervals sorted into views: ``groups`` (indices of the intervals of one
+    view, first interval first, in time order) and ``drifting`` (intervals not used, by the
+    hold they belong to: its intervals and why)."""
+
+    groups: list[list[int]]
+    drifting: list[tuple[list[int], str]]
+
+    def why(self, i: int) -> str | None:
+        """Why interval ``i`` was dropped (None: it is in a view)."""
+        return next((w for ch, w in self.drifting if i in ch), None)
+
+
+def sort_holds(intervals: list[StillInterval], test: AgreeTest) -> Holds:
+    """Still intervals -> views: a drifting hold is dropped, one pose held twice is one view.
+
+    1. *drift*: an interval whose halves differ (:meth:`AgreeTest.drifts`), or consecutive
+       intervals with no move between them (:meth:`AgreeTest.moved_between`) that do not
+       all show one pose: the board slid during one hold and the still runs cut it into
+       pieces. Every interval of such a hold is dropped (its pieces are near-copies of one
+       pose that would count as independent views in ``lidarcal planes``).
+    2. *merge*: the remaining intervals that show the same pose within the noise
+       (:meth:`AgreeTest.same_pose`; the board paused twice, or was brought back exactly)
+       form one view; an interval joins the first view whose every interval it agrees with.
+    """
+    drifting: list[tuple[list[int], str]] = []
+    chain = [0] if intervals else []
+    chains = []
+    for i in range(1, len(intervals)):
+        if test.moved_between(intervals[i - 1], intervals[i]):
+            chains.append(chain)
+            chain = [i]
+        else:
+            chain.append(i)
+    if chain:
+        chains.append(chain)
+    for ch in chains:
+        inside = [i for i in ch if test.drifts(intervals[i])]
+        pieces = len(ch) > 1 and not all(test.same_pose(intervals[i], intervals[j])
+                                         for i, j in itertools.combinations(ch, 2))
+        if inside or pieces:
+            drifting.append((ch, f"{len(ch)} still piece(s) with no move between them that "
+                                 "differ beyond the noise" if pieces else
+                                 "its first and second halves differ beyond the noise"))
+    dropped = {i for ch, _ in drifting for i in ch}
+    groups: list[list[int]] = []
+    for i in (i for i in range(len(intervals)) if i not in dropped):
+        for g in groups:
+            if all(test.same_pose(intervals[i], intervals[j]) for j in g):
+                g.append(i)
+                break
+        else:
+            groups.append([i])
+    return Holds(groups, drifting)
+
+
 # ----------------------------------------------------------------------------- camera info
 
 
@@ -319,6 +447,7 @@ class ImportedView:
     t_end_s: float
     n_scans: int
     n_frames: int
+    intervals: list[int] = field(default_factory=list)  # still intervals merged into it
 
 
 @dataclass
@@ -332,18 +461,26 @@ class ViewsResult:
     topics: dict[str, str | None]
     camera_written: bool
     warnings: list[str] = field(default_factory=list)
+    n_intervals: int = 0  # still intervals found (views + merged + drifting)
+    n_drifting: int = 0  # still intervals dropped: the board slid during the hold
 
 
 def import_views(bag: str | os.PathLike, out: str | os.PathLike, *,
                  scan_topic: str | None = None, image_topic: str | None = None,
                  camera_info_topic: str | None = None, min_scans: int = 5,
+                 pattern: tuple[int, int] | None = None, square_mm: float | None = None,
                  overwrite: bool = False, progress: bool = False) -> ViewsResult:
     """A one-board bag -> a folder of ``NAME.png`` + ``NAME.csv`` views (and ``camera.json``
     from a CameraInfo, ``views.json`` with what was found), written atomically.
 
+    ``pattern`` (inner corners, columns x rows) and ``square_mm`` (both or neither): the
+    board, written as ``board.json`` (:func:`lidarcal.io.pairs.board_spec` reads it, so
+    ``lidarcal planes DIR`` needs no ``--pattern``/``--square-mm``).
+
     See the module docstring for how the still intervals are found.
     """
     bag, out = Path(bag), Path(out)
+    board = board_json(bag, pattern, square_mm)
     if min_scans < 3:
         raise DatasetError(bag, f"--min-scans must be >= 3 (a per-beam median needs 3 scans), "
                                 f"got {min_scans}")
@@ -357,15 +494,32 @@ def import_views(bag: str | os.PathLike, out: str | os.PathLike, *,
         topics["camera_info"] = pick_topic(reader, camera_info_topic, (CAMERAINFO,),
                                            "CameraInfo", "--camera-info-topic", bag,
                                            prefer=ns.lower(), required=False)
-        return _import_views(reader, bag, out, topics, min_scans, overwrite, progress)
-    except _reader_errors() as e:
+        return _import_views(reader, bag, out, topics, min_scans, overwrite, progress, board)
+    except reader_errors() as e:
         raise unreadable_bag(bag, e) from None
     finally:
         reader.close()
 
 
+def board_json(bag: Path, pattern: tuple[int, int] | None,
+               square_mm: float | None) -> dict | None:
+    """``board.json`` of a views folder (the keys of dataset.json's boards), or None."""
+    if pattern is None and square_mm is None:
+        return None
+    if pattern is None or square_mm is None:
+        raise DatasetError(bag, "--pattern and --square-mm go together (board.json needs the "
+                                "inner corners and the square side); give both or neither")
+    if (len(pattern) != 2 or not all(isinstance(v, int) and v >= 2 for v in pattern)):
+        raise DatasetError(bag, f"--pattern must be COLSxROWS inner corners, each >= 2 (like "
+                                f"8x5), got {'x'.join(map(str, pattern))}")
+    if not (math.isfinite(square_mm) and square_mm > 0):
+        raise DatasetError(bag, f"--square-mm must be a number > 0 (the square side, mm), got "
+                                f"{square_mm:g}")
+    return {"inner_corners": [int(pattern[0]), int(pattern[1])], "square_mm": float(square_mm)}
+
+
 def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, overwrite: bool,
-                  progress: bool) -> ViewsResult:
+                  progress: bool, board: dict | None = None) -> ViewsResult:
     from tqdm import tqdm
 
     clock = Clock()
@@ -376,7 +530,7 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
     frame_shape = None
     layout = None
     info = None
-    conns = [c for role in ("scan", "image", "camera_info") for c in _connections(reader, topics[role])]
+    conns = [c for role in ("scan", "image", "camera_info") for c in connections(reader, topics[role])]
     with tqdm(total=sum(c.msgcount for c in conns), unit="msg", disable=not progress,
               desc=f"import {bag.name}") as bar:
         for conn, log_ns, raw in reader.messages(connections=conns):
@@ -449,10 +603,21 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
                                 f"with {min_scans} whole scans and a frame ({noise_text}); hold "
                                 "the board still at each view for about a second (at least "
                                 f"{min_scans} scans and two frames)")
-    if len(intervals) < FEW_VIEWS:
-        warn.append(f"only {len(intervals)} still interval(s): lidarcal planes needs at least 3 "
+    holds = sort_holds(intervals, AgreeTest(R, np.stack(blocks), sigma_s, float(floor_s), sigma_f))
+    for ch, why in holds.drifting:
+        warn.append(f"the board moved slowly during the hold at "
+                    f"{intervals[ch[0]].t_start - clock0:.2f}..{intervals[ch[-1]].t_end - clock0:.2f}"
+                    f" s ({why}): not used as a view; hold the board still at each view")
+    if not holds.groups:
+        raise DatasetError(bag, f"no still view: all {len(intervals)} still interval(s) drifted "
+                                f"(the board moved slowly while held; {noise_text}); hold the "
+                                "board still at each view for about a second")
+    if len(holds.groups) < FEW_VIEWS:
+        warn.append(f"only {len(holds.groups)} view(s): lidarcal planes needs at least 3 "
                     f"views with differently tilted boards and fixes the pose better with "
                     f"{FEW_VIEWS} or more; record more holds")
+    # a merged view's frame: the middle frame of its interval with the most frames
+    main = [max(g, key=lambda i: (len(intervals[i].frames), -i)) for g in holds.groups]
 
     camera = None
     if topics["camera_info"] is not None and info is None:
@@ -468,28 +633,34 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
             camera = None
 
     # the chosen frames: a second pass over the camera topic
-    wanted = {int(fo[iv.middle_frame]): k for k, iv in enumerate(intervals)}
-    names = [f"view_{k:03d}_t{fts[iv.middle_frame] - clock0:.2f}" for k, iv in enumerate(intervals)]
-    tmp = _prepare_out(out, overwrite)
+    wanted = {int(fo[intervals[m].middle_frame]): k for k, m in enumerate(main)}
+    names = [f"view_{k:03d}_t{fts[intervals[m].middle_frame] - clock0:.2f}"
+             for k, m in enumerate(main)]
+    tmp = prepare_out(out, overwrite)
     try:
         i = -1
-        for conn, _, raw in reader.messages(connections=_connections(reader, topics["image"])):
+        for conn, _, raw in reader.messages(connections=connections(reader, topics["image"])):
             i += 1
             if i in wanted:
                 img = image_from_msg(reader.deserialize(raw, conn.msgtype), conn.msgtype,
                                      f"{bag}: {conn.topic}")
-                _write_png(tmp / f"{names[wanted[i]]}.png", img)
+                write_png(tmp / f"{names[wanted[i]]}.png", img)
         angles = layout.angle_min_deg + np.arange(layout.range_mm.size) * layout.angle_step_deg
         views = []
-        for k, iv in enumerate(intervals):
-            r = combine_scans([R[q].astype(np.float64) for q in iv.scans])
+        for k, (g, m) in enumerate(zip(holds.groups, main)):
+            iv = intervals[m]
+            scans_k = sorted(q for i in g for q in intervals[i].scans)
+            r = combine_scans([R[q].astype(np.float64) for q in scans_k])
             (tmp / f"{names[k]}.csv").write_text(scan_csv_text(angles, r))
             views.append(ImportedView(names[k], float(fts[iv.middle_frame] - clock0),
                                       float(iv.t_start - clock0), float(iv.t_end - clock0),
-                                      len(iv.scans),
-                                      len(iv.frames)))
+                                      len(scans_k), sum(len(intervals[i].frames) for i in g),
+                                      list(g)))
+        view_of = {i: v.name for v in views for i in v.intervals}
         if camera is not None:
             write_json_atomic(tmp / "camera.json", camera)
+        if board is not None:
+            write_json_atomic(tmp / "board.json", board)
         write_json_atomic(tmp / "views.json", {
             "bag": str(bag), "topics": topics, "clock": dict(clock.mode),
             "scan_noise_mm": {"median": float(np.median(sigma_b)),
@@ -498,12 +669,19 @@ def _import_views(reader, bag: Path, out: Path, topics: dict, min_scans: int, ov
             "scan_threshold_mm_median": float(np.median(thr_scan)),
             "frame_threshold_gray": thr_frame, "min_scans": min_scans,
             "still_scan_runs": n_srun, "still_frame_runs": n_frun,
+            "still_intervals": [{"index": i, "t_start_s": round(iv.t_start - clock0, 6),
+                                 "t_end_s": round(iv.t_end - clock0, 6), "scans": len(iv.scans),
+                                 "frames": len(iv.frames), "view": view_of.get(i),
+                                 **({"drifting": holds.why(i)} if holds.why(i) else {})}
+                                for i, iv in enumerate(intervals)],
             "views": [{"name": v.name, "t_s": round(v.t_s, 6),
                        "t_start_s": round(v.t_start_s, 6), "t_end_s": round(v.t_end_s, 6),
-                       "scans": v.n_scans, "frames": v.n_frames} for v in views]})
-        _finish_out(tmp, out)
+                       "scans": v.n_scans, "frames": v.n_frames, "intervals": v.intervals}
+                      for v in views]})
+        finish_out(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return ViewsResult(out, views, n_srun, n_frun, float(np.median(sigma_b)), sigma_f, topics,
-                       camera is not None, warn)
+                       camera is not None, warn, len(intervals),
+                       sum(len(ch) for ch, _ in holds.drifting))

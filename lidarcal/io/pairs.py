@@ -7,7 +7,8 @@ return) or ``x_mm,y_mm`` (points in the LiDAR's scan plane, x = range cos(angle)
 y = range sin(angle); both 0 or empty = no return). Other columns are ignored.
 An image without a scan (or the reverse) is an error naming the file.
 ``lidarcal import BAG --views`` writes such a folder from a ROS bag
-(:mod:`lidarcal.io.bag_views`; its ``views.json`` and ``camera.json`` are not pairs).
+(:mod:`lidarcal.io.bag_views`; its ``views.json``, ``camera.json`` and, with ``--pattern`` and
+``--square-mm``, ``board.json`` are not pairs).
 """
 
 from __future__ import annotations

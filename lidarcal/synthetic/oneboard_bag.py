@@ -20,6 +20,16 @@ All streams run free at their own rates:
 - optionally a second camera ``/camera2/image_raw`` (an ambiguous recording) or no scan
   topic at all (a broken one).
 
+How a hand holds the board can be varied: ``order`` is the sequence of views held (a view
+named again is a return to exactly its pose; named twice in a row, the board is taken
+``excursion_mm`` sideways between the two holds and brought back: a pause twice at one
+pose), and ``drift_mm`` lets the board drift while "held": during each hold of
+``drift_holds`` (indices into the holds; default every hold) it slides at constant speed
+by ``drift_mm`` in all along ``(n + e_u) / sqrt 2`` (its normal and its width), centred
+on the view's pose (the pose of the hold's middle); the frames drift by the pixel shift
+of the board's centre (a sub-pixel translation of the view's photo, the change of scale
+neglected).
+
 Returns the timeline: per view its hold window (s from the bag's first message).
 """
 
@@ -40,11 +50,13 @@ _LOG_DELAY_S = 0.003  # a message is logged this long after its stamp
 
 @dataclass(frozen=True)
 class Hold:
-    """The board of view ``index`` still from ``t_start_s`` to ``t_end_s`` (bag seconds)."""
+    """The board of view ``index`` still from ``t_start_s`` to ``t_end_s`` (bag seconds);
+    ``drift_mm``: how far it slid during the hold (0: still)."""
 
     index: int
     t_start_s: float
     t_end_s: float
+    drift_mm: float = 0.0
 
 
 def _rect_between(a: Rect, b: Rect, u: float) -> Rect:
@@ -79,7 +91,10 @@ def write_oneboard_bag(rig: OneBoardRig, bag: str | Path, *, storage: str = "ros
                        move_s: float = 0.6, scan_hz: float = 40.0, camera_hz: float = 15.0,
                        frame_noise: float = 1.5, profile: str = "cosine",
                        distortion_model: str | None = "plumb_bob",
-                       second_camera: bool = False, with_scans: bool = True) -> list[Hold]:
+                       second_camera: bool = False, with_scans: bool = True,
+                       order: list[int] | None = None, excursion_mm: float = 150.0,
+                       drift_mm: float = 0.0,
+                       drift_holds: list[int] | None = None) -> list[Hold]:
     """Record the rig's views as a bag at ``bag`` (see the module docstring); returns the holds.
 
     ``storage``: ``"rosbag1"`` (a ``.bag`` file), ``"sqlite3"`` or ``"mcap"`` (ROS 2 folder).
@@ -96,33 +111,69 @@ def write_oneboard_bag(rig: OneBoardRig, bag: str | Path, *, storage: str = "ros
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.LATEST)
     rng = np.random.default_rng(seed)
     views = rig.views
+    seq = list(range(len(views))) if order is None else [int(k) for k in order]
+    if not seq or min(seq) < 0 or max(seq) >= len(views):
+        raise ValueError(f"order must name views 0..{len(views) - 1}, got {order!r}")
     photos = [render_photo(rig, v, seed * 1000 + k) for k, v in enumerate(views)]
-    # poses in time: away -> view 0 -> ... -> view n-1 -> away
-    away_in = _shifted(views[0].rect, np.array([600.0, 0, 0]))
-    away_out = _shifted(views[-1].rect, np.array([-600.0, 0, 0]))
-    rects = [away_in, *[v.rect for v in views], away_out]
-    pics = [np.roll(photos[0], 200, axis=1), *photos, np.roll(photos[-1], -200, axis=1)]
-    segs: list[tuple[str, float, float, int]] = []  # kind, t0, t1, pose index (move: from)
+    # poses in time: away -> the held views (an excursion between two holds of one view) -> away
+    away_in = _shifted(views[seq[0]].rect, np.array([600.0, 0, 0]))
+    away_out = _shifted(views[seq[-1]].rect, np.array([-600.0, 0, 0]))
+    rects, pics, held = [away_in], [np.roll(photos[seq[0]], 200, axis=1)], [None]
+    for i, k in enumerate(seq):
+        if i and k == seq[i - 1]:
+            rects.append(_shifted(views[k].rect, excursion_mm * views[k].rect.e_u))
+            pics.append(np.roll(photos[k], 60, axis=1))
+            held.append(None)
+        rects.append(views[k].rect)
+        pics.append(photos[k])
+        held.append(k)
+    rects.append(away_out)
+    pics.append(np.roll(photos[seq[-1]], -200, axis=1))
+    held.append(None)
+    drifting = set(range(len(seq)) if drift_holds is None else drift_holds) if drift_mm else set()
+    segs: list[tuple[str, float, float, int, float]] = []  # kind, t0, t1, pose (move: from), drift
     holds: list[Hold] = []
     t = 0.0
     for k in range(len(rects) - 1):
-        segs.append(("move", t, t + move_s, k))
-        t += move_s
-        if k + 1 < len(rects) - 1 and hold_s > 0:
-            segs.append(("hold", t, t + hold_s, k + 1))
-            holds.append(Hold(k, t, t + hold_s))
+        excursion = held[k] is None and held[k + 1] is not None and k > 0
+        m = move_s / 2 if held[k + 1] is None and k + 1 < len(rects) - 1 or excursion else move_s
+        segs.append(("move", t, t + m, k, 0.0))
+        t += m
+        if held[k + 1] is not None and hold_s > 0:
+            d = drift_mm if len(holds) in drifting else 0.0
+            segs.append(("hold", t, t + hold_s, k + 1, d))
+            holds.append(Hold(held[k + 1], t, t + hold_s, d))
             t += hold_s
     t_end = t
 
-    def state(tm: float) -> tuple[int, int, float]:
-        """(pose a, pose b, u): the board at fraction u from pose a to pose b."""
-        for kind, a, b, k in segs:
+    def drift_vec(k: int) -> np.ndarray:
+        r = rects[k]
+        d = np.cross(r.e_u, r.e_v) + r.e_u
+        return d / np.linalg.norm(d)
+
+    # a drifting hold starts at -drift/2 and ends at +drift/2: the moves join those ends
+    off_start = {k: -0.5 * d * drift_vec(k) for kind, _, _, k, d in segs if kind == "hold" and d}
+    off_end = {k: -v for k, v in off_start.items()}
+    zero = np.zeros(3)
+
+    def state(tm: float) -> tuple[int, int, float, np.ndarray]:
+        """(pose a, pose b, u, offset): the board at fraction u from pose a to pose b, moved
+        by ``offset`` (mm, camera frame; a drifting hold)."""
+        for kind, a, b, k, d in segs:
             if tm <= b:
                 if kind == "hold":
-                    return k, k, 0.0
+                    return k, k, 0.0, d * ((tm - a) / (b - a) - 0.5) * drift_vec(k)
                 u = min(max((tm - a) / (b - a), 0.0), 1.0)
-                return k, k + 1, (0.5 * (1 - math.cos(math.pi * u)) if profile == "cosine" else u)
-        return len(rects) - 1, len(rects) - 1, 0.0
+                return (k, k + 1, (0.5 * (1 - math.cos(math.pi * u)) if profile == "cosine" else u),
+                        zero)
+        return len(rects) - 1, len(rects) - 1, 0.0, zero
+
+    def pixel_shift(k: int, off: np.ndarray) -> np.ndarray:
+        """The image shift (px) of the board centre of pose ``k`` moved by ``off``."""
+        r = rects[k]
+        c = r.point(r.width / 2, r.height / 2)
+        p0, p1 = rig.camera.K @ c, rig.camera.K @ (c + off)
+        return p1[:2] / p1[2] - p0[:2] / p0[2]
 
     angles = views[0].angle_deg
     n_beams = angles.size
@@ -131,13 +182,16 @@ def write_oneboard_bag(rig: OneBoardRig, bag: str | Path, *, storage: str = "ros
     cache: dict[int, np.ndarray] = {}
 
     def scan_msg(t0: float):
-        a, b, u = state(t0 + span / 2)
-        if a == b:
+        a, b, u, off = state(t0 + span / 2)
+        if a == b and off.any():
+            r = true_ranges_mm(rig, _shifted(rects[a], off))
+        elif a == b:
             if a not in cache:
                 cache[a] = true_ranges_mm(rig, rects[a])
             r = cache[a]
         else:
-            r = true_ranges_mm(rig, _rect_between(rects[a], rects[b], u))
+            r = true_ranges_mm(rig, _rect_between(_shifted(rects[a], off_end.get(a, zero)),
+                                                  _shifted(rects[b], off_start.get(b, zero)), u))
         r = np.rint(r + rng.normal(0, rig.range_noise_mm, n_beams))
         m = r / 1000.0
         bad = rng.random(n_beams) < 0.02
@@ -151,12 +205,21 @@ def write_oneboard_bag(rig: OneBoardRig, bag: str | Path, *, storage: str = "ros
                          intensities=np.zeros(0, dtype=np.float32))
 
     def frame(tm: float) -> np.ndarray:
-        a, b, u = state(tm)
+        a, b, u, off = state(tm)
         if a == b:
             base = pics[a].astype(np.float64)
+            shift = pixel_shift(a, off)
         else:
             mix = (1 - u) * pics[a].astype(np.float64) + u * pics[b].astype(np.float64)
             base = np.roll(mix, round(40 * math.sin(math.pi * u)), axis=1)
+            shift = ((1 - u) * pixel_shift(a, off_end.get(a, zero))
+                     + u * pixel_shift(b, off_start.get(b, zero)))
+        if shift.any():
+            import cv2
+
+            base = cv2.warpAffine(base, np.array([[1.0, 0, shift[0]], [0, 1.0, shift[1]]]),
+                                  (base.shape[1], base.shape[0]), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_REPLICATE)
         return np.clip(np.rint(base + rng.normal(0, frame_noise, base.shape)), 0, 255).astype(np.uint8)
 
     def info_msg(tm: float):
