@@ -6,10 +6,11 @@ board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
 :func:`lidarcal.laser_colour.along_stripe`, kept off overexposed areas, its saturated
 core filled up to a width scaled with the squares; the centroid centres of
 :func:`lidarcal.stripe.stripe_centres` guide Steger's line detector,
-:func:`lidarcal.stripe_steger.steger_stripe`; on a colour photo whose board does not clip,
+:func:`lidarcal.stripe_steger.steger_stripe`; on a colour photo,
 the same detector also runs on the full-resolution luma with the lit board modelled and
-removed, :func:`lidarcal.stripe_luma.luma_stripe`, whose centres are used when they pass
-the same gates and scatter less about their line), their rays meet
+removed, :func:`lidarcal.stripe_luma.luma_stripe`, at the luma stripe's own width, whose
+centres are used when they pass the same gates and scatter less about their line, unless an
+overexposed square lies within a square of the stripe), their rays meet
 the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose

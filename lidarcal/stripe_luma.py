@@ -29,7 +29,8 @@ and white squares. Here that board is predicted and subtracted:
 
 Measured on the semi-real JPEG photos (q 90, 4:2:0, Bayer; scripts/semireal_laser.py): the
 centres' error against the true stripe 0.225 px on the colour response, 0.141 px on the
-luma response; the board model fits the luma beside the stripe to ~2-3 DN rms.
+luma response read at the colour stripe's width, 0.124 px at its own (:func:`luma_width`);
+the board model fits the luma beside the stripe to ~2-3 DN rms.
 """
 
 from __future__ import annotations
