@@ -378,11 +378,12 @@ def luma_width(response: np.ndarray, mask: np.ndarray, camera: CameraModel | Non
     (JPEG's half-resolution chroma, demosaicing), and a scale set by it reaches further
     into the stripe's uneven flanks (measured on the semi-real JPEG photos: the centres'
     error against the true stripe 0.261 mm rms with the colour width, 0.247 mm with the
-    luma's own). The guide's width when the luma's cannot be measured or is wider."""
+    luma's own). The guide's width when the luma's cannot be measured (fewer than 5
+    centres there) or is wider."""
     from .stripe_profile import stripe_centres
 
-    _, info = stripe_centres(response, mask, camera, return_info=True)
-    w = float(info.get("width_px", np.nan))
+    pts, info = stripe_centres(response, mask, camera, return_info=True)
+    w = float(info.get("width_px", np.nan)) if len(pts) >= 5 else float("nan")
     return w if np.isfinite(w) and 0 < w <= guide_width_px else float(guide_width_px)
 
 
