@@ -6,10 +6,11 @@ board's plane (eqs. 1-3), the laser stripe on it gives sub-pixel centres
 :func:`lidarcal.laser_colour.along_stripe`, kept off overexposed areas, its saturated
 core filled up to a width scaled with the squares; the centroid centres of
 :func:`lidarcal.stripe.stripe_centres` guide Steger's line detector,
-:func:`lidarcal.stripe_steger.steger_stripe`; on a colour photo whose board does not clip,
+:func:`lidarcal.stripe_steger.steger_stripe`; on a colour photo,
 the same detector also runs on the full-resolution luma with the lit board modelled and
-removed, :func:`lidarcal.stripe_luma.luma_stripe`, whose centres are used when they pass
-the same gates and scatter less about their line), their rays meet
+removed, :func:`lidarcal.stripe_luma.luma_stripe`, at the luma stripe's own width, whose
+centres are used when they pass the same gates and scatter less about their line, unless an
+overexposed square lies within a square of the stripe), their rays meet
 the board plane (eq. 5) and all the photos' 3D
 stripe points are fitted by one plane (eq. 4, total least squares: geometric
 distances, not the paper's algebraic ``ax + by + cz = 1``). Photos whose
@@ -82,6 +83,11 @@ BOARD_SEARCH_PX = 1600
 #: colour photos: the stripe's centres also found on the full-resolution luma with the lit
 #: board modelled and removed (:mod:`lidarcal.stripe_luma`), used where they scatter less
 LUMA_REFINE = True
+#: ... but not when an overexposed area of the board lies within this many squares' sides of
+#: the stripe (measured on the semi-real photos: the luma's centres of a stripe 7-24 px from
+#: one were biased by up to 0.8 mm, of one 79 px or more away as good as on a board that
+#: does not clip; a square is 38-50 px there)
+LUMA_CLIP_SQUARES = 1.0
 #: below this ratio of the 2nd to the 1st singular value of the points the stripes are
 #: (nearly) parallel and the plane is not determined
 MIN_SPREAD = 0.02
@@ -349,13 +355,13 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         k = 2 * int(np.ceil(side * CLIPPED_GUARD_SQUARES)) + 1
         clipped = cv2.dilate(clipped_areas(img, colour, core).view(np.uint8),
                              np.ones((k, k), np.uint8))
-        board_clips = bool((clipped & mask).any())  # overexposed squares on the board
+        board_clipped = clipped & mask  # overexposed squares on the board
         mask &= 1 - clipped
         mask &= 1 - wide_objects(response, mask, side)
         response, along_deg = along_stripe(response, mask.astype(bool), side, edges,
                                            smooth_px=side)
     else:
-        board_clips = False
+        board_clipped, side = None, float("nan")
     pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
         sat = None if img.ndim != 3 or colour not in _CHANNEL else \
@@ -363,11 +369,11 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         guide, ginfo = pts, info
         pts, info = steger_stripe(response, mask.astype(bool), camera, pts, info, sat)
         if LUMA_REFINE and colour in _CHANNEL and len(pts) >= 5 and info["problem"] is None \
-                and not board_clips:
+                and not clipped_near(board_clipped, pts, LUMA_CLIP_SQUARES * side):
             # the same stripe on the full-resolution luma, the lit board removed: used when
             # it passes the same gates and its centres scatter less about their line (not
-            # on an overexposed board: the luma has no headroom left for the laser on its
-            # white squares, the stripe's luma is cut there)
+            # beside an overexposed square: the luma has no headroom left for the laser on
+            # the white squares there, the stripe's luma is cut)
             p2, i2 = luma_stripe(img, camera, view, found_spec, pts, guide, ginfo,
                                  mask.astype(bool), side, along_deg, sat)
             if i2.get("problem") is None and i2["fit_rms_px"] <= info["fit_rms_px"]:
@@ -383,6 +389,18 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
     res.board_plane = view.plane_pnp  # the ML pose: better than the homography's plane
     res.points_mm = backproject_to_plane(camera, pts, view.plane_pnp)
     return res
+
+
+def clipped_near(clipped: np.ndarray | None, centres_px: np.ndarray, reach_px: float) -> bool:
+    """Whether a pixel of ``clipped`` (uint8 or bool, the image's shape; None: none) lies
+    within ``reach_px`` of a centre (N, 2): ``cv2.distanceTransform`` of the rest."""
+    if clipped is None or not np.any(clipped) or len(centres_px) == 0:
+        return False
+    dist = cv2.distanceTransform((np.asarray(clipped) == 0).astype(np.uint8), cv2.DIST_L2, 5)
+    H, W = dist.shape
+    ip = np.rint(np.asarray(centres_px, float)).astype(int)
+    ip = np.clip(ip, 0, [W - 1, H - 1])
+    return bool((dist[ip[:, 1], ip[:, 0]] <= reach_px).any())
 
 
 def _rms_to_plane(photo: PhotoResult, plane: Plane) -> float:
