@@ -57,6 +57,7 @@ from .stripe import (
 )
 from .stripe_albedo import albedo_blur, blur_blackness
 from .trace import mark
+from .turn_scale import turn_scale_warnings
 from .turntable import angle_scale, fit_paper, fit_rigid, unwrap_angles_deg
 
 if TYPE_CHECKING:
@@ -428,6 +429,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
         else:
             warnings += [f"joint fit: {w}" for w in res.joint_model.warnings]
             warnings += _joint_rigid_warnings(res)
+            warnings += turn_scale_warnings(res, psi, samples, JOINT_RIGID_SIGMAS)
         mark("joint")
     return res
 
@@ -752,15 +754,19 @@ def sigma_block(model, positions: list[PositionResult]) -> dict:
     psi = np.array([p.psi_deg for p in positions], dtype=float)
     cols = model.position_sigma_columns([p.index for p in positions], psi)
     spread = model.info.get("rigid_spread")  # _joint_rigid_warnings: widened to cover both fits
-    if spread is not None:
+    # turn_scale_warnings: widened by what the encoder's scale error does to the poses
+    for sp in (spread, model.info.get("turn_scale_spread")):
+        if sp is None:
+            continue
         for q in ("centre_mm", "z_axis_deg", "x_axis_deg"):
-            cols[q] = np.hypot(cols[q], [spread[q].get(p.index, 0.0) for p in positions])
+            cols[q] = np.hypot(cols[q], [sp[q].get(p.index, 0.0) for p in positions])
         for q in ("axis_direction_deg", "axis_point_mm"):
-            cols[q] = np.hypot(cols[q], spread[q])
+            cols[q] = np.hypot(cols[q], sp[q])
     rows = [{"index": p.index, "psi_deg": p.psi_deg,
              **{q: _finite_or_none(cols[q][j]) for q in ("centre_mm", "z_axis_deg", "x_axis_deg")}}
             for j, p in enumerate(positions)]
     return {"level": "1-sigma", "method": "joint", **({"widened_to_rigid": True} if spread else {}),
+            **({"widened_to_turn_scale": True} if "turn_scale_spread" in model.info else {}),
             "angle_jitter_deg": float(model.jitter_deg),
             "axis_direction_deg": _finite_or_none(cols["axis_direction_deg"][0]),
             "axis_point_mm": _finite_or_none(cols["axis_point_mm"][0]),

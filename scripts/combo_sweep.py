@@ -73,7 +73,8 @@ _SKIP_RANDOM = {"R:paper", "R:wide", "L:base", "C:clean", "L:pos150", "L:pos3", 
                 "L:pos3_step5", "R:cam_4k", "R:v_tiny_3px", "R:v_tiny_5px",
                 # ranging physics added after the seeded batches were drawn (kept out of the
                 # draw so a seed names the same combos as before; HAND combines them)
-                "L:incidence10", "L:incidence30", "L:scale0.2pct", "L:scale1pct"}
+                "L:incidence10", "L:incidence30", "L:scale0.2pct", "L:scale1pct",
+                "L:psiscale1pct", "L:psiscale3pct"}
 # capture builders, for combos the three sweeps do not list as one case
 EXTRA_CAPTURE = {
     "stripes_jpeg40": cs.Case("stripes_jpeg40", stripes=cs.jpeg(40)),
@@ -134,6 +135,10 @@ HAND: dict[str, tuple[str, ...]] = {
     "wide_scale1pct": ("R:wide", "L:scale1pct"),
     "disc_scale0.2pct": ("L:disc_near", "L:scale0.2pct"),
     "fov270yaw_incidence10_lit": ("L:fov270_yaw90", "L:incidence10", "C:lit60"),
+    # an encoder (gear) scale error: the turns read 1 % / 3 % long
+    "paper_psiscale1pct": ("R:paper", "L:psiscale1pct"),
+    "wide_psiscale1pct": ("R:wide", "L:psiscale1pct"),
+    "paper_psiscale3pct": ("R:paper", "L:psiscale3pct"),
 }
 
 

@@ -122,6 +122,8 @@ def variants() -> list[Variant]:
         _v("psi300", psi0_deg=(300.0, 310.0)),
         _v("psiwrap", psi0_deg=(352.0, 355.0), post="wrap"),
         _v("encoder0.02", encoder_noise_deg=0.02),
+        _v("psiscale1pct", post="scale0.01"),
+        _v("psiscale3pct", post="scale0.03"),
         _v("axis_tilt10", axis_tilt_deg=10.0),
         # --- geometry ---
         _v("v_near", WBASE, hinge_distance_mm=(600.0, 680.0)),
@@ -138,13 +140,23 @@ def variants() -> list[Variant]:
 
 
 def _post(ds: Path, how: str, rng: np.random.Generator) -> None:
-    """Rewrite positions.csv: rows shuffled ("shuffle") or angles wrapped into [0, 360) ("wrap")."""
+    """Rewrite positions.csv: rows shuffled ("shuffle"), angles wrapped into [0, 360) ("wrap")
+    or their turns from the first row scaled by ``1 + e`` ("scale<e>": an encoder scale error)."""
     if not how:
         return
     lines = (ds / "positions.csv").read_text().splitlines()
     head, rows = lines[0], lines[1:]
     if how == "shuffle":
         rows = [rows[i] for i in rng.permutation(len(rows))]
+    elif how.startswith("scale"):  # an encoder/gear scale error: psi - psi_0 read (1 + e) x
+        e = float(how[5:])
+        f0 = float(rows[0].split(",")[1])
+        out = []
+        for r in rows:
+            f = r.split(",")
+            f[1] = f"{f0 + (float(f[1]) - f0) * (1.0 + e):.4f}"
+            out.append(",".join(f))
+        rows = out
     elif how == "wrap":
         out = []
         for r in rows:
