@@ -135,6 +135,7 @@ HAND: dict[str, tuple[str, ...]] = {
     "wide_scale1pct": ("R:wide", "L:scale1pct"),
     "disc_scale0.2pct": ("L:disc_near", "L:scale0.2pct"),
     "fov270yaw_incidence10_lit": ("L:fov270_yaw90", "L:incidence10", "C:lit60"),
+    "disc_incidence10": ("L:disc_near", "L:incidence10"),
     # an encoder (gear) scale error: the turns read 1 % / 3 % long
     "paper_psiscale1pct": ("R:paper", "L:psiscale1pct"),
     "wide_psiscale1pct": ("R:wide", "L:psiscale1pct"),

@@ -77,3 +77,21 @@ def test_an_offset_the_datasets_prior_confirms_keeps_its_sigmas(tmp_path):
     sig = {s["index"]: s["centre_mm"] for s in cal["sigma"]["poses"]}
     assert all(joint[i] < 2.0 * sig[i] for i in joint), (joint, sig)
     assert np.isclose(cal["ranging"]["offset_mm"], -10.0, atol=3 * cal["ranging"]["offset_sigma_mm"])
+
+
+def test_a_doubted_offset_widens_the_diameters_offset_term():
+    """combo3 ``disc_incidence10``: the sweeps were corrected by the -9.2 mm offset the joint
+    fit took from an incidence bias; 300 mm discs 0.9-1.1 mm off at 1.7-2.1 sigma. Where the
+    calibration widened its sigmas to the rigid fit the offset term of a diameter's sigma
+    carries the offset itself; elsewhere its own sigma."""
+    from types import SimpleNamespace
+
+    from lidarcal.disc import doubted_offset_sigma
+    from lidarcal.ranging import RangingModel
+
+    rng = RangingModel(offset_mm=-9.23, offset_sigma_mm=0.76)
+    plain = SimpleNamespace(ranging=rng, data={"sigma": {"method": "joint"}})
+    assert doubted_offset_sigma(plain) == pytest.approx(0.76)
+    doubted = SimpleNamespace(ranging=rng, data={"sigma": {"widened_to_rigid": True}})
+    assert doubted_offset_sigma(doubted) == pytest.approx(np.hypot(9.23, 0.76))
+    assert doubted_offset_sigma(SimpleNamespace(ranging=RangingModel(), data={})) == 0.0
