@@ -57,6 +57,7 @@ from .stripe import (
 )
 from .stripe_albedo import albedo_blur, blur_blackness
 from .trace import mark
+from .turn_scale import turn_scale_warnings
 from .turntable import angle_scale, fit_paper, fit_rigid, unwrap_angles_deg
 
 if TYPE_CHECKING:
@@ -428,6 +429,7 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
         else:
             warnings += [f"joint fit: {w}" for w in res.joint_model.warnings]
             warnings += _joint_rigid_warnings(res)
+            warnings += turn_scale_warnings(res, psi, samples, JOINT_RIGID_SIGMAS)
         mark("joint")
     return res
 
@@ -471,8 +473,13 @@ def _joint_rigid_warnings(res: CalibrationResult) -> list[str]:
     ``info["rigid_spread"]``, applied by :func:`sigma_block`). A disagreement that the range
     offset the joint fit found explains (the single-shot poses use raw ranges; a range offset
     ``o`` moves the V's hinge, so the LiDAR, by up to ``o / sin(alpha / 2)``; the offset
-    ``OFFSET_EXPLAINS_SIGMAS`` of its sigmas from zero) is reported as such, with the sigmas
-    as they are."""
+    ``OFFSET_EXPLAINS_SIGMAS`` of its sigmas from zero) is reported as such. Its sigmas stay
+    as they are only when dataset.json's own prior confirms that offset
+    (:func:`offset_confirmed_by_prior`): scans of planes do not tell a range offset from a
+    range bias growing with the incidence angle, which leaves the LiDAR near the rigid fit
+    (combo3, a 10 mm incidence bias ``k (1/cos - 1)``: the joint fit found a -9.2 +- 0.8 mm
+    offset and sat 10.3 mm from the truth at 12.7 sigma, the rigid fit 0.66 mm; 30 mm on
+    the wide rig: 35.4 and 3.1 mm), so otherwise the sigmas are widened to cover both fits."""
     spread = _rigid_spread(res)
     if spread is None:
         return []
@@ -481,20 +488,47 @@ def _joint_rigid_warnings(res: CalibrationResult) -> list[str]:
     if ratio[worst] <= JOINT_RIGID_SIGMAS:
         return []
     rng = getattr(res.joint_model, "ranging", None)
-    if (rng is not None and "offset" not in rng.held
+    confirmed = rng is not None and offset_confirmed_by_prior(rng)  # held at that prior: applied
+    if (rng is not None and ("offset" not in rng.held or confirmed)
             and abs(rng.offset_mm) > OFFSET_EXPLAINS_SIGMAS * rng.offset_sigma_mm):
         half = 0.5 * float(np.mean([p.camera_lines.alpha for p in res.positions]))
         bound = (abs(rng.offset_mm) + 3.0 * rng.offset_sigma_mm) / max(np.sin(half), 0.1)
         if all(d[i] <= bound + 3.0 * sig[i] for i in d):
-            return [(f"the joint fit's LiDAR centre is {d[worst]:.2f} mm from the rigid fit's at "
+            found = (f"the joint fit's LiDAR centre is {d[worst]:.2f} mm from the rigid fit's at "
                      f"position {worst}, as the range offset it found ({rng.offset_mm:.3g} +- "
                      f"{rng.offset_sigma_mm:.2g} mm) explains: the single-shot poses, "
-                     "'poses_rigid' and 'poses_paper' use the raw ranges")]
+                     "'poses_rigid' and 'poses_paper' use the raw ranges")
+            if confirmed:
+                return [found + f" (the offset agrees with dataset.json's prior {rng.prior.offset_mm:g} "
+                                f"+- {rng.prior.offset_sigma_mm:g} mm)"]
+            res.joint_model.info["rigid_spread"] = spread
+            return [found + (". But scans of the two boards' planes do not tell a range offset from "
+                             "a range bias growing with the incidence angle (k (1/cos - 1) reads as an "
+                             "offset -k and a shift of the LiDAR by about k / sin(alpha/2)), which "
+                             "would leave the LiDAR where the rigid fit puts it: 'sigma' is widened "
+                             "to cover both fits; if the LiDAR's zero offset is known (datasheet, a "
+                             "range to a measured distance), give lidar.range_offset_mm and "
+                             "lidar.range_offset_sigma_mm in dataset.json")]
     res.joint_model.info["rigid_spread"] = spread
     return [(f"the joint fit's LiDAR centre is {d[worst]:.2f} mm ({ratio[worst]:.1f} sigma) from the "
              f"rigid fit's at position {worst}: the joint sigmas understate its error here; "
              "'sigma' is widened to cover both fits; compare 'poses_rigid', check the warnings "
              "above (sweep span, board squares, jitter) or calibrate with --method rigid")]
+
+
+def offset_confirmed_by_prior(rng) -> bool:
+    """Whether dataset.json's own range-offset prior (:class:`lidarcal.ranging.RangingPrior`)
+    already says the LiDAR reads ``OFFSET_EXPLAINS_SIGMAS`` of its sigmas off zero and agrees
+    with the offset the joint fit found (within 3 sigma of both): then the offset is the
+    LiDAR's, not a range bias growing with the incidence angle, which plane scans cannot tell
+    from it (``k (1/cos(theta) - 1) = -k + k``, the constant ``k`` along both board normals
+    being a shift of the LiDAR)."""
+    pr = getattr(rng, "prior", None)
+    if pr is None or pr.source != "dataset.json":
+        return False
+    return bool(abs(pr.offset_mm) > OFFSET_EXPLAINS_SIGMAS * pr.offset_sigma_mm
+                and abs(rng.offset_mm - pr.offset_mm) <= 3.0 * np.hypot(pr.offset_sigma_mm,
+                                                                        rng.offset_sigma_mm))
 
 
 def _rigid_spread(res: CalibrationResult) -> dict | None:
@@ -720,15 +754,19 @@ def sigma_block(model, positions: list[PositionResult]) -> dict:
     psi = np.array([p.psi_deg for p in positions], dtype=float)
     cols = model.position_sigma_columns([p.index for p in positions], psi)
     spread = model.info.get("rigid_spread")  # _joint_rigid_warnings: widened to cover both fits
-    if spread is not None:
+    # turn_scale_warnings: widened by what the encoder's scale error does to the poses
+    for sp in (spread, model.info.get("turn_scale_spread")):
+        if sp is None:
+            continue
         for q in ("centre_mm", "z_axis_deg", "x_axis_deg"):
-            cols[q] = np.hypot(cols[q], [spread[q].get(p.index, 0.0) for p in positions])
+            cols[q] = np.hypot(cols[q], [sp[q].get(p.index, 0.0) for p in positions])
         for q in ("axis_direction_deg", "axis_point_mm"):
-            cols[q] = np.hypot(cols[q], spread[q])
+            cols[q] = np.hypot(cols[q], sp[q])
     rows = [{"index": p.index, "psi_deg": p.psi_deg,
              **{q: _finite_or_none(cols[q][j]) for q in ("centre_mm", "z_axis_deg", "x_axis_deg")}}
             for j, p in enumerate(positions)]
     return {"level": "1-sigma", "method": "joint", **({"widened_to_rigid": True} if spread else {}),
+            **({"widened_to_turn_scale": True} if "turn_scale_spread" in model.info else {}),
             "angle_jitter_deg": float(model.jitter_deg),
             "axis_direction_deg": _finite_or_none(cols["axis_direction_deg"][0]),
             "axis_point_mm": _finite_or_none(cols["axis_point_mm"][0]),

@@ -93,6 +93,10 @@ def variants() -> list[Variant]:
         _v("offset+25", range_offset_mm=25.0),
         _v("offset-30", range_offset_mm=-30.0),
         _v("spurious5", spurious_rate=0.05),
+        _v("incidence10", incidence_extra_mm=10.0),
+        _v("incidence30", incidence_extra_mm=30.0),
+        _v("scale0.2pct", range_scale_error=0.002),
+        _v("scale1pct", range_scale_error=0.01),
         _v("drop20", drop_rate=0.2),
         _v("maxrange4m", lidar_range_max_mm=4000.0, wall_distance_mm=(4500.0, 5500.0)),
         _v("maxrange2m_far", lidar_range_max_mm=2000.0, wall_distance_mm=(2300.0, 3400.0)),
@@ -118,6 +122,8 @@ def variants() -> list[Variant]:
         _v("psi300", psi0_deg=(300.0, 310.0)),
         _v("psiwrap", psi0_deg=(352.0, 355.0), post="wrap"),
         _v("encoder0.02", encoder_noise_deg=0.02),
+        _v("psiscale1pct", post="scale0.01"),
+        _v("psiscale3pct", post="scale0.03"),
         _v("axis_tilt10", axis_tilt_deg=10.0),
         # --- geometry ---
         _v("v_near", WBASE, hinge_distance_mm=(600.0, 680.0)),
@@ -146,13 +152,23 @@ def spot_variants() -> list[Variant]:
 
 
 def _post(ds: Path, how: str, rng: np.random.Generator) -> None:
-    """Rewrite positions.csv: rows shuffled ("shuffle") or angles wrapped into [0, 360) ("wrap")."""
+    """Rewrite positions.csv: rows shuffled ("shuffle"), angles wrapped into [0, 360) ("wrap")
+    or their turns from the first row scaled by ``1 + e`` ("scale<e>": an encoder scale error)."""
     if not how:
         return
     lines = (ds / "positions.csv").read_text().splitlines()
     head, rows = lines[0], lines[1:]
     if how == "shuffle":
         rows = [rows[i] for i in rng.permutation(len(rows))]
+    elif how.startswith("scale"):  # an encoder/gear scale error: psi - psi_0 read (1 + e) x
+        e = float(how[5:])
+        f0 = float(rows[0].split(",")[1])
+        out = []
+        for r in rows:
+            f = r.split(",")
+            f[1] = f"{f0 + (float(f[1]) - f0) * (1.0 + e):.4f}"
+            out.append(",".join(f))
+        rows = out
     elif how == "wrap":
         out = []
         for r in rows:

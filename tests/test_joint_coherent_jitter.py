@@ -128,22 +128,41 @@ def test_joint_far_from_rigid_widens_sigma_to_cover_both(yawed_jittery, monkeypa
 def test_a_range_offset_explains_the_rigid_fits_distance(small_dataset):
     """The single-shot poses use raw ranges: a joint fit that found a range offset ``o`` may
     sit up to ``o / sin(alpha / 2)`` from the rigid fit (combo r29, offset -30 mm: 31.9 mm,
-    joint 0.018 mm from the truth, rigid 32 mm) without doubting its sigmas."""
+    joint 0.018 mm from the truth, rigid 32 mm). Its sigmas stand only when dataset.json's
+    prior confirms the offset; else a range bias growing with the incidence angle (which
+    leaves the LiDAR at the rigid fit, combo3) is as likely and 'sigma' covers both fits."""
     from dataclasses import replace
 
     from lidarcal.pipeline import _joint_rigid_warnings, sigma_block
-    from lidarcal.ranging import RangingModel
+    from lidarcal.ranging import RangingModel, RangingPrior
 
     res = calibrate(small_dataset, progress=False)
-    rigid = res.rigid_model
+    rigid, joint = res.rigid_model, res.joint_model
     res.rigid_model = _Shifted(rigid, np.array([0.0, 0.0, 30.0]))
-    res.joint_model = replace(res.joint_model, ranging=RangingModel(offset_mm=-30.0, offset_sigma_mm=0.5))
+    confirmed = RangingPrior(offset_mm=-28.0, offset_sigma_mm=2.0, source="dataset.json")
+    res.joint_model = replace(joint, ranging=RangingModel(offset_mm=-30.0, offset_sigma_mm=0.5,
+                                                          prior=confirmed))
     (w,) = _joint_rigid_warnings(res)
     assert "as the range offset it found (-30 +- 0.5 mm) explains" in w, w
+    assert "agrees with dataset.json's prior" in w, w
     assert "rigid_spread" not in res.joint_model.info
     assert "widened_to_rigid" not in sigma_block(res.joint_model, res.positions)
+    # the default (wide) prior, or a dataset prior that does not put the offset off zero or
+    # disagrees with it: the offset is not told from an incidence bias, widened
+    for prior in (None, RangingPrior(), RangingPrior(0.0, 10.0, source="dataset.json"),
+                  RangingPrior(-10.0, 1.0, source="dataset.json")):
+        res.joint_model = replace(joint, ranging=RangingModel(offset_mm=-30.0, offset_sigma_mm=0.5,
+                                                              prior=prior), info=dict(joint.info))
+        (w,) = _joint_rigid_warnings(res)
+        assert "explains" in w and "incidence angle" in w and "'sigma' is widened" in w, (prior, w)
+        assert "lidar.range_offset_mm" in w, w
+        sig = sigma_block(res.joint_model, res.positions)
+        assert sig["widened_to_rigid"] is True
+        d = res.joint_model.info["rigid_spread"]["centre_mm"]
+        assert all(s["centre_mm"] >= d[s["index"]] > 29.0 for s in sig["poses"])
+    res.joint_model = replace(joint, info=dict(joint.info))
     # an offset far smaller than the distance does not explain it: widened
-    res.joint_model = replace(res.joint_model, ranging=RangingModel(offset_mm=-5.0, offset_sigma_mm=0.5))
+    res.joint_model = replace(joint, ranging=RangingModel(offset_mm=-5.0, offset_sigma_mm=0.5))
     (w,) = _joint_rigid_warnings(res)
     assert "widened" in w, w
     sig = sigma_block(res.joint_model, res.positions)["poses"]

@@ -96,6 +96,8 @@ class RigConfig:
     range_offset_mm: float = 0.0                   # zero offset: every valid range reads this much too far
     dark_extra_mm: float = 0.0                     # returns from black squares read this much farther
     range_quantum_mm: float = 0.0                  # ranges rounded to multiples of this (0: none)
+    incidence_extra_mm: float = 0.0                # sub-ray range + this * (1/cos(incidence) - 1)
+    range_scale_error: float = 0.0                 # every valid range times (1 + this): a time-base error
     # --- disc measurement trials ---
     n_discs: int = 10
     disc_diameter_mm: float = 140.0

@@ -40,7 +40,11 @@ edge in proportion to the energy on black (:func:`dark_range_bias`);
 ``range_offset_mm`` is added to every valid range before the noise (a zero
 offset); ``range_quantum_mm`` rounds the noisy ranges to multiples of the
 quantum (e.g. 1 mm: a Hokuyo UTM-30LX reports integer mm) before the range
-window is applied (:func:`apply_ranging_errors`).
+window is applied (:func:`apply_ranging_errors`); ``incidence_extra_mm`` lengthens
+each sub-ray's range by ``incidence_extra_mm * (1 / cos(incidence) - 1)`` (a pulse
+stretched on an oblique surface triggers late; :func:`incidence_range_bias`) and
+``range_scale_error`` multiplies every valid range by ``1 + range_scale_error`` (a
+time-base error) with the offset.
 
 Speed: each beam is first probed with 7 sub-rays (centre + 6 on the outer
 ring); only beams whose probes do not all hit the same surface are traced
@@ -108,7 +112,15 @@ def _energy(surfaces: list, t: np.ndarray, idx: np.ndarray, orig: np.ndarray, di
     cos_inc = np.abs(np.einsum("ij,ij->i", nrm, dirs))
     if rig.dark_extra_mm:
         t = t + dark_range_bias(mat, rig)
+    if rig.incidence_extra_mm:
+        t = t + np.where(idx >= 0, incidence_range_bias(cos_inc, rig), 0.0)
     return t, idx, w * refl[mat] * cos_inc
+
+
+def incidence_range_bias(cos_inc: np.ndarray, rig: RigConfig) -> np.ndarray:
+    """Extra range (mm) of sub-rays by incidence: ``incidence_extra_mm * (1 / cos - 1)``
+    (0 at normal incidence; the cosine floored at 0.1, i.e. 84 deg)."""
+    return float(rig.incidence_extra_mm) * (1.0 / np.maximum(np.asarray(cos_inc, float), 0.1) - 1.0)
 
 
 def dark_range_bias(mat: np.ndarray, rig: RigConfig) -> np.ndarray:
@@ -126,6 +138,8 @@ def apply_ranging_errors(ranges_mm: np.ndarray, rig: RigConfig, stage: str) -> n
     """
     r = np.asarray(ranges_mm, dtype=float)
     if stage == "offset":
+        if rig.range_scale_error:
+            r = r * (1.0 + rig.range_scale_error)
         return r + (r > 0) * rig.range_offset_mm if rig.range_offset_mm else r
     if stage == "quantise":
         q = rig.range_quantum_mm

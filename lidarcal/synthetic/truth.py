@@ -236,13 +236,17 @@ def ranging_truth(rig: RigConfig) -> dict:
 
     ``offset_mm``: every valid range reads this much too far; ``dark_extra_mm``:
     returns from black squares read this much farther still; ``quantum_mm``:
-    ranges are multiples of it (0 = not quantised). Absent = no ranging errors,
+    ranges are multiples of it (0 = not quantised); ``incidence_extra_mm`` and
+    ``scale_error`` when set (:mod:`lidarcal.synthetic.lidar`). Absent = no ranging errors,
     so the default rigs' truth.json is unchanged.
     """
     terms = (rig.range_offset_mm, rig.dark_extra_mm, rig.range_quantum_mm)
-    if not any(terms):
+    extra = {k: float(v) for k, v in (("incidence_extra_mm", rig.incidence_extra_mm),
+                                      ("scale_error", rig.range_scale_error)) if v}
+    if not any(terms) and not extra:
         return {}
-    return {"ranging": dict(zip(("offset_mm", "dark_extra_mm", "quantum_mm"), map(float, terms)))}
+    return {"ranging": {**dict(zip(("offset_mm", "dark_extra_mm", "quantum_mm"), map(float, terms))),
+                        **extra}}
 
 
 # ----------------------------------------------------------------------------- sampling
