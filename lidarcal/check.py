@@ -230,9 +230,9 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     Raises :class:`DatasetError` only when the dataset cannot be read at all
     (``dataset.json``, ``positions.csv``, ``board.png``); everything else is listed in the result.
     """
+    from .calibration_checks import setup_warnings
     from .pipeline import (
         MIN_POSITIONS,
-        _setup_warnings,
         blur_warning,
         camera_for,
         find_boards,
@@ -280,7 +280,7 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
         res.notes.append(f"the angle steps vary from {steps.min():g} to {steps.max():g} deg "
                          f"(median {s.psi_step_deg:g})")
     good = [p for p in res.positions if p.detected]
-    res.notes += _setup_warnings(np.array([p.psi_deg for p in good]) if good else psi, good)
+    res.notes += setup_warnings(np.array([p.psi_deg for p in good]) if good else psi, good)
     if boards is not None:
         res.notes += small_square_warnings(boards, ds.v_board, ds.board_image)
     if boards is not None and len(good) < MIN_POSITIONS:

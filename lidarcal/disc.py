@@ -241,7 +241,7 @@ def doubted_offset_sigma(cal) -> float:
     ``offset_sigma_mm``, and ``hypot(sigma, |offset|)`` when the calibration widened its
     sigmas to the rigid fit (``sigma.widened_to_rigid``): the joint fit and the rigid fit (raw
     ranges) then disagree, e.g. a range bias growing with the incidence angle read as an offset
-    (:func:`lidarcal.pipeline._joint_rigid_warnings`), so the offset applied to the sweeps may
+    (:func:`lidarcal.calibration_checks.joint_rigid_warnings`), so the offset applied to the sweeps may
     be wrong by itself (combo3 ``disc_incidence10``: a -9.2 +- 0.8 mm offset, 300 mm discs
     0.9-1.1 mm off at 1.7-2.1 sigma)."""
     from .ranging import ranging_of

@@ -96,7 +96,7 @@ def turn_scale_spread(psi_deg, samples: Sequence[Pose], rigid, scale: TurnScale)
 def turn_scale_warnings(res, psi: np.ndarray, samples: Sequence[Pose], limit_sigmas: float) -> list[str]:
     """A warning naming positions.csv when the single-shot poses turn by a significantly
     different angle than the reported one (an encoder's scale error below the 3 % that
-    :func:`lidarcal.pipeline._check_angle_scale` names) and that moves some position by more
+    :func:`lidarcal.calibration_checks.check_angle_scale` names) and that moves some position by more
     than ``limit_sigmas`` of the joint fit's 1-sigma (``res`` a
     :class:`lidarcal.pipeline.CalibrationResult` with its joint model); 'sigma' is then
     widened by what the scale does to the rigid fit (stored as the joint model's

@@ -118,15 +118,15 @@ def test_joint_fit_far_from_the_rigid_fit_warns(small_dataset):
     """The joint and rigid fits see the same data: on 45 rendered variants their centres
     differed by at most 0.18 of the joint 1-sigma; a joint fit 57 mm off (6 px squares, 2-deg
     sweep) was 3.6 sigma from the rigid one and its sigmas lied. Beyond 1 sigma: a warning."""
-    from lidarcal.pipeline import _joint_rigid_warnings
+    from lidarcal.calibration_checks import joint_rigid_warnings
 
     res = calibrate(small_dataset)
-    assert res.method == "joint" and _joint_rigid_warnings(res) == []
+    assert res.method == "joint" and joint_rigid_warnings(res) == []
     assert not any("from the rigid fit's" in w for w in res.warnings)
     sig = calibration_dict(res)["sigma"]["poses"]
     least, worst = min(s["centre_mm"] for s in sig), max(s["centre_mm"] for s in sig)
     res.rigid_model = _Shifted(res.rigid_model, [0.0, 0.0, 0.5 * least])
-    assert _joint_rigid_warnings(res) == []
+    assert joint_rigid_warnings(res) == []
     res.rigid_model = _Shifted(res.rigid_model.model, [0.0, 0.0, 3.0 * worst])
-    (w,) = _joint_rigid_warnings(res)
+    (w,) = joint_rigid_warnings(res)
     assert "from the rigid fit's at position" in w and "--method rigid" in w, w

@@ -133,7 +133,8 @@ def test_a_range_offset_explains_the_rigid_fits_distance(small_dataset):
     leaves the LiDAR at the rigid fit, combo3) is as likely and 'sigma' covers both fits."""
     from dataclasses import replace
 
-    from lidarcal.pipeline import _joint_rigid_warnings, sigma_block
+    from lidarcal.calibration_checks import joint_rigid_warnings
+    from lidarcal.pipeline import sigma_block
     from lidarcal.ranging import RangingModel, RangingPrior
 
     res = calibrate(small_dataset, progress=False)
@@ -142,7 +143,7 @@ def test_a_range_offset_explains_the_rigid_fits_distance(small_dataset):
     confirmed = RangingPrior(offset_mm=-28.0, offset_sigma_mm=2.0, source="dataset.json")
     res.joint_model = replace(joint, ranging=RangingModel(offset_mm=-30.0, offset_sigma_mm=0.5,
                                                           prior=confirmed))
-    (w,) = _joint_rigid_warnings(res)
+    (w,) = joint_rigid_warnings(res)
     assert "as the range offset it found (-30 +- 0.5 mm) explains" in w, w
     assert "agrees with dataset.json's prior" in w, w
     assert "rigid_spread" not in res.joint_model.info
@@ -153,7 +154,7 @@ def test_a_range_offset_explains_the_rigid_fits_distance(small_dataset):
                   RangingPrior(-10.0, 1.0, source="dataset.json")):
         res.joint_model = replace(joint, ranging=RangingModel(offset_mm=-30.0, offset_sigma_mm=0.5,
                                                               prior=prior), info=dict(joint.info))
-        (w,) = _joint_rigid_warnings(res)
+        (w,) = joint_rigid_warnings(res)
         assert "explains" in w and "incidence angle" in w and "'sigma' is widened" in w, (prior, w)
         assert "lidar.range_offset_mm" in w, w
         sig = sigma_block(res.joint_model, res.positions)
@@ -163,7 +164,7 @@ def test_a_range_offset_explains_the_rigid_fits_distance(small_dataset):
     res.joint_model = replace(joint, info=dict(joint.info))
     # an offset far smaller than the distance does not explain it: widened
     res.joint_model = replace(joint, ranging=RangingModel(offset_mm=-5.0, offset_sigma_mm=0.5))
-    (w,) = _joint_rigid_warnings(res)
+    (w,) = joint_rigid_warnings(res)
     assert "widened" in w, w
     sig = sigma_block(res.joint_model, res.positions)["poses"]
     d = res.joint_model.info["rigid_spread"]["centre_mm"]
@@ -176,12 +177,12 @@ def test_a_doubtful_range_offset_explains_nothing(small_dataset):
     offset within ``OFFSET_EXPLAINS_SIGMAS`` of its sigmas of zero does not excuse the distance."""
     from dataclasses import replace
 
-    from lidarcal.pipeline import OFFSET_EXPLAINS_SIGMAS, _joint_rigid_warnings
+    from lidarcal.calibration_checks import OFFSET_EXPLAINS_SIGMAS, joint_rigid_warnings
     from lidarcal.ranging import RangingModel
 
     res = calibrate(small_dataset, progress=False)
     res.rigid_model = _Shifted(res.rigid_model, np.array([0.0, 0.0, 20.0]))
     sig = 19.0 / (OFFSET_EXPLAINS_SIGMAS - 1.9)  # 6.1 mm: 3.1 sigma
     res.joint_model = replace(res.joint_model, ranging=RangingModel(offset_mm=19.0, offset_sigma_mm=sig))
-    (w,) = _joint_rigid_warnings(res)
+    (w,) = joint_rigid_warnings(res)
     assert "widened" in w and "explains" not in w, w
