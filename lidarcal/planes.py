@@ -167,17 +167,19 @@ def board_plane(camera: CameraModel, corners_px: np.ndarray, board: BoardSpec) -
 #: more than this (px RMS). Their smooth corner model fits clean boards with a lower residual
 #: (0.02-0.06 px against 0.02-0.08 px on the rendered one-board views, differences <= 0.04 px)
 #: but carries pattern-scale errors the residual cannot show (a common scale moves the pose, not
-#: the residuals): 0.2-0.9 per mille, 0.5-5 mm of plane distance at 1.5 m, up to 8 sigma of the
-#: plane's covariance, the same sign in most views, so they do not average out over the views.
+#: the residuals): 0.2-0.9 per mille, up to 5 mm of plane distance at 1.1-2 m, Mahalanobis
+#: distances up to 8 from the plane's covariance, mostly of one sign, so they do not average
+#: out over the views.
 #: Where the package's corners fail (TAPAS's fiducial rings: 0.86 and 1.04 px against 0.35 px)
 #: the difference is 0.5-0.7 px.
 ACCURACY_MODE_GAIN_PX = 0.1
 
 
 def choose_corner_set(fits: list[BoardPlane]) -> BoardPlane:
-    """The board plane of the package's corners (``fits[0]``, ``cornerSubPix``-refined; the only set
-    when one detector found the board), unless
-    OpenCV's accuracy-mode set fits the board better by :data:`ACCURACY_MODE_GAIN_PX`."""
+    """The board plane of the package's corners (``fits[0]``, ``cornerSubPix``-refined; the only
+    set when one detector found the board), unless OpenCV's accuracy-mode set fits the board
+    better by more than :data:`ACCURACY_MODE_GAIN_PX` (Zhang & Pless's plane, eq. 3, from the
+    corners that are closer to the truth, not merely smoother)."""
     best = min(fits, key=lambda bp: bp.sigma_px)
     return best if best.sigma_px < fits[0].sigma_px - ACCURACY_MODE_GAIN_PX else fits[0]
 
