@@ -25,11 +25,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lidarcal.degeneracy import pose_difference  # noqa: E402
-from lidarcal.io.dataset import BoardSpec  # noqa: E402
-from lidarcal.planes import calibrate_planes, run_planes  # noqa: E402
-from lidarcal.scan_segments import line_segments, local_line_noise  # noqa: E402
-from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes  # noqa: E402
+from lidarcal.degeneracy import pose_difference
+from lidarcal.io.dataset import BoardSpec
+from lidarcal.planes import calibrate_planes, run_planes
+from lidarcal.scan_segments import line_segments, local_line_noise
+from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes
 
 TOLD = "cannot be told from the surface behind it"
 
