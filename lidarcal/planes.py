@@ -428,19 +428,27 @@ def _gate_view(v: ViewData, R: np.ndarray, T: np.ndarray, tol_mm: float,
                seed_beams: np.ndarray | None = None) -> np.ndarray:
     """:func:`gate_board_points` of a view, then the board cut out of a wall in line with it
     (:func:`lidarcal.planes_wall.cut_run`: the edges between the printed pattern and its grown
-    extent, mapped by ``(R, T)`` and the camera's board pose); sets ``v.beside``, the share of the
-    run beyond the board that no significant step separates from it."""
+    extent, mapped by ``(R, T)`` and the camera's board pose). The cut is sought on the run gated
+    at three times ``tol_mm`` (a wall's returns gated at ``tol_mm`` are those its noise pulls
+    nearer: their step would be biased low). Sets ``v.beside``: the share of the gated run
+    beyond the board that no significant step separates from it (then dropped)."""
     run = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, tol_mm, seed_beams)
     v.beside = 0.0
     if len(run) < MIN_POINTS:
         return run
-    p = scan_points(v.angle_deg[run], v.range_mm[run])
+    wide = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, 3.0 * tol_mm, run)
+    p = scan_points(v.angle_deg[wide], v.range_mm[wide])
     X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
     u = (X - v.board.T) @ v.board.R[:, :2]
-    i, j, v.beside, _ = cut_run(p, u, v.board.board, MIN_POINTS)
-    if (i, j) != (0, len(run)) and j - i > 2 + MIN_POINTS:
-        i, j = i + (i > 0), j - (j < len(run))  # mixed returns at a cut edge
-    return run[i:j]
+    i, j, _, cut = cut_run(p, u, v.board.board, MIN_POINTS)
+    if (i, j) == (0, len(wide)):
+        return run
+    if cut is not None and cut.significant and j - i > 2 + MIN_POINTS:
+        i, j = i + (i > 0), j - (j < len(wide))  # mixed returns at a cut edge
+    keep = run[(run >= wide[i]) & (run <= wide[j - 1])]
+    if cut is None or not cut.significant:
+        v.beside = 1.0 - len(keep) / len(run)
+    return keep
 
 
 def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -534,8 +542,10 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     R, T = ref.R, ref.T
     for factor in (6.0, 4.0):  # gate on the predicted plane and refine; then once more, tighter
         for v, t in zip(sub, tot):
-            if id(v) in seeds:
-                v.beams = _gate_view(v, R, T, factor * t, seeds[id(v)])
+            if id(v) in seeds:  # seeded by the last gate's board (the consensus piece may be
+                # a wall beside it, which the cut of the gated run has since left out)
+                last = v.beams if len(v.beams) >= MIN_POINTS else seeds[id(v)]
+                v.beams = _gate_view(v, R, T, factor * t, last)
         ref = refine_extrinsics(sub, R, T, anchor=(R0, T0))
         R, T = ref.R, ref.T
     # views outside the first consensus: gated on the final prediction, kept if they agree

@@ -47,14 +47,20 @@ def max_chord_mm(board: BoardSpec) -> float:
     return float(np.linalg.norm(hi - lo + 2 * grow))
 
 
+#: An outer piece must lie this many residual sigmas behind the board's line to be a wall (a
+#: board's own margin, bent or read with a small bias, stays within about one sigma of it).
+MIN_STEP_SIGMAS = 2.0
+
+
 @dataclass(frozen=True)
 class BoardCut:
     """The board piece ``[start, stop)`` of ordered points and the test that found it.
 
     ``gain`` is ``n ln(SSE_1 / SSE_cut)`` (twice the log likelihood ratio with the noise at its
     maximum-likelihood value), ``penalty`` BIC's ``k ln n`` (``k``: 3 per outer piece, a line and
-    its breakpoint); ``step_sigmas``: the board piece's mean offset from the outer pieces' line in
-    units of the cut model's residual sigma (0 when there is no outer piece)."""
+    its breakpoint); ``step_sigmas``: how far the outer pieces lie behind the board piece's line
+    beside it (the nearer of the two, :func:`_behind_sigmas`) in units of the cut model's
+    residual sigma (inf when there is no outer piece)."""
 
     start: int
     stop: int
@@ -64,7 +70,8 @@ class BoardCut:
 
     @property
     def significant(self) -> bool:
-        return self.gain > self.penalty
+        """BIC prefers the cut, and every outer piece lies behind the board (a wall)."""
+        return self.gain > self.penalty and self.step_sigmas >= MIN_STEP_SIGMAS
 
 
 def _sse(cs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -78,13 +85,30 @@ def _sse(cs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(hi - lo >= 3, out, 0.0)
 
 
+def _behind_sigmas(p: np.ndarray, i: int, j: int, sse: float) -> float:
+    """How far the outer pieces ``p[:i]``, ``p[j:]`` lie behind the TLS line of ``p[i:j]`` (the
+    nearer of the two; mean distance along the line's normal pointing away from the LiDAR at the
+    origin, over the outer returns within half the board's count of it: a long wall is not
+    judged by the board's line extrapolated metres away), in units of the residual sigma of the
+    three-line fit (``sse``); inf if neither."""
+    line = fit_line_2d(p[i:j])
+    away = 1.0 if line.offset >= 0 else -1.0  # normal . p = offset > 0 on the far side
+    sigma = np.sqrt(sse / max(len(p) - 3 * ((i > 0) + (j < len(p)) + 1), 1))
+    k = max((j - i) // 2, 3)  # beside the board only: its line extrapolated no farther
+    steps = [away * float(np.mean(line.distance(q))) for q in (p[max(i - k, 0):i], p[j:j + k])
+             if len(q)]
+    return min(steps) / max(sigma, 1e-12) if steps else np.inf
+
+
 def best_cut(p: np.ndarray, starts: np.ndarray, stops: np.ndarray,
              max_chord: float = np.inf) -> BoardCut | None:
     """The board piece ``p[i:j]`` of ordered points ``p`` (N, 2) with ``i`` in ``starts`` and
-    ``j`` in ``stops`` (``i = 0`` / ``j = N``: no wall on that side) whose three-line fit
-    (``p[:i]``, ``p[i:j]``, ``p[j:]``, each its own TLS line) leaves the least squared residual,
-    its chord at most ``max_chord`` mm; None if no pair is allowed. The test against one line
-    through all of ``p`` is in the returned :class:`BoardCut`."""
+    ``j`` in ``stops`` (``i = 0`` / ``j = N``: no wall on that side), its chord at most
+    ``max_chord`` mm: for each shape (a wall on the left, the right or both sides) the pair whose
+    three-line fit (``p[:i]``, ``p[i:j]``, ``p[j:]``, each its own TLS line) leaves the least
+    squared residual; of those, the significant one (:attr:`BoardCut.significant`: BIC against
+    one line through all of ``p``, the walls behind the board) with the largest ``gain - penalty``,
+    else the one with the largest. None if no pair is allowed."""
     n = len(p)
     q = p - p.mean(0)
     x, y = q[:, 0], q[:, 1]
@@ -97,19 +121,19 @@ def best_cut(p: np.ndarray, starts: np.ndarray, stops: np.ndarray,
     if not np.any(ok):
         return None
     i, j = i[ok], j[ok]
-    zero = np.zeros_like(i)
-    sse = _sse(cs, zero, i) + _sse(cs, i, j) + _sse(cs, j, np.full_like(j, n))
-    b = int(np.argmin(sse))
-    i0, j0 = int(i[b]), int(j[b])
-    sse1 = float(_sse(cs, np.array([0]), np.array([n]))[0])
-    sse_cut = max(float(sse[b]), 1e-12 * max(sse1, 1.0))
-    k = 3 * ((i0 > 0) + (j0 < n))
-    step = 0.0
-    outer = np.concatenate([p[:i0], p[j0:]])
-    if len(outer) >= 2:
-        sigma = np.sqrt(sse_cut / max(n - 2 * (1 + (i0 > 0) + (j0 < n)) - k // 3, 1))
-        step = abs(float(np.mean(fit_line_2d(outer).distance(p[i0:j0])))) / max(sigma, 1e-12)
-    return BoardCut(i0, j0, n * np.log(max(sse1, sse_cut) / sse_cut), k * np.log(n), step)
+    sse = (_sse(cs, np.zeros_like(i), i) + _sse(cs, i, j) + _sse(cs, j, np.full_like(j, n)))
+    sse1 = max(float(_sse(cs, np.array([0]), np.array([n]))[0]), 1e-300)
+    cuts = []
+    for shape in ((i > 0) & (j < n), (i > 0) & (j == n), (i == 0) & (j < n)):
+        if not np.any(shape):
+            continue
+        b = np.flatnonzero(shape)[int(np.argmin(sse[shape]))]
+        i0, j0 = int(i[b]), int(j[b])
+        s = min(max(float(sse[b]), 1e-12 * sse1), sse1)
+        cuts.append(BoardCut(i0, j0, n * float(np.log(sse1 / s)),
+                             3 * ((i0 > 0) + (j0 < n)) * float(np.log(n)),
+                             _behind_sigmas(p, i0, j0, s)))
+    return max(cuts, key=lambda c: (c.significant, c.gain - c.penalty))
 
 
 def cut_candidates(candidates: list[LineSegment], board: BoardSpec,
