@@ -62,7 +62,7 @@ from .geometry import Plane, plane_basis
 from .io.dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
 from .planes_checks import FLAT_STEP, direction_words, flat_valley, other_minima
 from .planes_linear import linear_extrinsics, select_board_segments
-from .planes_wall import cut_candidates, cut_run, pattern_extent
+from .planes_wall import MIN_STEP_SIGMAS, cut_candidates, cut_run, pattern_extent
 from .scan import scan_points
 from .scan_segments import MIN_POINTS, LineSegment, line_segments, local_line_noise
 
@@ -424,14 +424,29 @@ def _lies_along_plane(view: ViewData, R: np.ndarray, T: np.ndarray, sigma_mm: fl
     return abs(b) * np.ptp(s) <= 3.0 * sigma_mm
 
 
+def _beams_on_pattern(v: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Beams whose returns, mapped by ``(R, T)``, fall within the board's printed pattern (board
+    frame of eq. 1, :func:`lidarcal.planes_wall.pattern_extent`) whatever their distance from
+    its plane."""
+    with np.errstate(invalid="ignore"):
+        p = scan_points(v.angle_deg, v.range_mm)
+        u = (np.column_stack([p, np.zeros(len(p))]) @ R.T + T - v.board.T) @ v.board.R[:, :2]
+        lo, hi, _ = pattern_extent(v.board.board)
+        return np.flatnonzero(np.all((u >= lo) & (u <= hi), axis=1))
+
+
 def _gate_view(v: ViewData, R: np.ndarray, T: np.ndarray, tol_mm: float,
                seed_beams: np.ndarray | None = None) -> np.ndarray:
     """:func:`gate_board_points` of a view, then the board cut out of a wall in line with it
     (:func:`lidarcal.planes_wall.cut_run`: the edges between the printed pattern and its grown
-    extent, mapped by ``(R, T)`` and the camera's board pose). The cut is sought on the run gated
+    extent, mapped by ``(R, T)`` and the camera's board pose). The run gated is the one with
+    most returns on the printed pattern (else the one with most ``seed_beams``). The cut is sought on the run gated
     at three times ``tol_mm`` (a wall's returns gated at ``tol_mm`` are those its noise pulls
     nearer: their step would be biased low). Sets ``v.beside``: the share of the gated run
     beyond the board that no significant step separates from it (then dropped)."""
+    inside = _beams_on_pattern(v, R, T)
+    if len(inside) >= MIN_POINTS:  # the run the camera's board is on (not a wall piece beside it)
+        seed_beams = inside
     run = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, tol_mm, seed_beams)
     v.beside = 0.0
     if len(run) < MIN_POINTS:
@@ -580,12 +595,20 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                                 f"plane, > 3x the expected {expect:.1f} mm; check this view")
     for k, v in enumerate(views):
         if used[k]:
-            off = max(_share_off_board(v, R, T), v.beside)
+            off = _share_off_board(v, R, T)
             if off > 0.1:
                 warnings.append(f"{v.name}: {100 * off:.0f} % of the returns taken as the board lie "
                                 "beside the board the camera sees, on a surface in line with it: "
                                 "the board cannot be told from the surface behind it (a range "
                                 "step below the noise); hold the board farther from the wall")
+            elif v.beside > 0.1:
+                warnings.append(f"{v.name}: the scan runs on beside the board along a surface in "
+                                f"line with it ({100 * v.beside:.0f} % of those returns lie beyond "
+                                "the board the camera sees, dropped) and no range step (>= "
+                                f"{MIN_STEP_SIGMAS:g} noise sigmas) marks the board's edges: the "
+                                "board cannot be told from the surface behind it, and returns of "
+                                "that surface may remain beside the pattern; hold the board "
+                                "farther from the wall")
     if ref.noise_scale > 3.0:
         warnings.append(f"residuals are {ref.noise_scale:.1f}x the noise model (range noise and "
                         "corner noise); the sigmas are scaled by it, but check for a bent board "
