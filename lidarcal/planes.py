@@ -442,8 +442,10 @@ def _gate_view(v: ViewData, R: np.ndarray, T: np.ndarray, tol_mm: float,
     extent, mapped by ``(R, T)`` and the camera's board pose). The run gated is the one with
     most returns on the printed pattern (else the one with most ``seed_beams``). The cut is sought on the run gated
     at three times ``tol_mm`` (a wall's returns gated at ``tol_mm`` are those its noise pulls
-    nearer: their step would be biased low). Sets ``v.beside``: the share of the gated run
-    beyond the board that no significant step separates from it (then dropped)."""
+    nearer: their step would be biased low); where it is significant, the board's returns are
+    those between the steps at that wider gate (a patch of the board read a few mm off, a dark
+    square, no longer breaks the run). Sets ``v.beside``: the share of the gated run beyond the
+    board that no significant step separates from it (then dropped)."""
     inside = _beams_on_pattern(v, R, T)
     if len(inside) >= MIN_POINTS:  # the run the camera's board is on (not a wall piece beside it)
         seed_beams = inside
@@ -455,14 +457,16 @@ def _gate_view(v: ViewData, R: np.ndarray, T: np.ndarray, tol_mm: float,
     p = scan_points(v.angle_deg[wide], v.range_mm[wide])
     X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
     u = (X - v.board.T) @ v.board.R[:, :2]
-    i, j, _, cut = cut_run(p, u, v.board.board, MIN_POINTS)
+    i, j, loose, cut = cut_run(p, u, v.board.board, MIN_POINTS)
     if (i, j) == (0, len(wide)):
         return run
-    if cut is not None and cut.significant and j - i > 2 + MIN_POINTS:
-        i, j = i + (i > 0), j - (j < len(wide))  # mixed returns at a cut edge
+    if cut is not None and cut.significant:  # the board between the steps, at the wide gate
+        v.beside = loose
+        if j - i > 2 + MIN_POINTS:
+            i, j = i + (i > 0), j - (j < len(wide))  # mixed returns at a cut edge
+        return wide[i:j]
     keep = run[(run >= wide[i]) & (run <= wide[j - 1])]
-    if cut is None or not cut.significant:
-        v.beside = 1.0 - len(keep) / len(run)
+    v.beside = 1.0 - len(keep) / len(run)
     return keep
 
 
@@ -603,12 +607,12 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                                 "step below the noise); hold the board farther from the wall")
             elif v.beside > 0.1:
                 warnings.append(f"{v.name}: the scan runs on beside the board along a surface in "
-                                f"line with it ({100 * v.beside:.0f} % of those returns lie beyond "
-                                "the board the camera sees, dropped) and no range step (>= "
-                                f"{MIN_STEP_SIGMAS:g} noise sigmas) marks the board's edges: the "
-                                "board cannot be told from the surface behind it, and returns of "
-                                "that surface may remain beside the pattern; hold the board "
-                                "farther from the wall")
+                                f"line with it and no range step (>= {MIN_STEP_SIGMAS:g} noise "
+                                "sigmas) marks the board's edge within its margin "
+                                f"({100 * v.beside:.0f} % of the returns near the board in doubt; "
+                                "those beyond the board's grown extent dropped): the board cannot "
+                                "be told from the surface behind it; hold the board farther from "
+                                "the wall")
     if ref.noise_scale > 3.0:
         warnings.append(f"residuals are {ref.noise_scale:.1f}x the noise model (range noise and "
                         "corner noise); the sigmas are scaled by it, but check for a bent board "

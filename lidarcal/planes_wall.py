@@ -169,7 +169,8 @@ def cut_run(p: np.ndarray, u: np.ndarray, board: BoardSpec,
 
     Returns ``(start, stop, beside, cut)``: the board piece ``p[start:stop]``, the share of the
     run beyond the board's extent (:func:`pattern_extent`) that no significant step separates from
-    it (0 when cut or when the run stays on the board), and the test (None if not run). The
+    it (0 when the run stays on the board; when the cut falls at the grown extent itself, the
+    board piece's share between the pattern and that cut), and the test (None if not run). The
     breakpoints may fall only between the printed pattern and its grown extent (the board's
     unknown margin); returns beyond the extent are outer pieces (the wall's line). A run with
     fewer than ``min_points`` returns beside the pattern on both sides is left whole."""
@@ -191,5 +192,10 @@ def cut_run(p: np.ndarray, u: np.ndarray, board: BoardSpec,
         [np.arange(b, n - min_points + 1), [n]])
     cut = best_cut(p, starts, stops)
     if cut is not None and cut.significant:
-        return cut.start, cut.stop, 0.0, cut
+        # a step at the grown extent is no board edge found: the returns between the pattern and
+        # it may be the wall's (a board's margin is well inside the grown extent)
+        near = max(3, n // 50)  # returns: "at" the extent, give or take its noisy mapping
+        loose = (cut.start - a if 0 < i_lo and cut.start <= i_lo + near else 0) + (
+            cut.stop - b if j_hi < n and cut.stop >= j_hi - near else 0)
+        return cut.start, cut.stop, loose / (cut.stop - cut.start), cut
     return i_lo, j_hi, float(np.mean(beyond)), cut
