@@ -14,7 +14,9 @@ which is linear in the nine entries of ``H``. Steps:
    corners and OpenCV's accuracy-mode corners, the set that fits the board better);
 2. straight segments of each scan (:func:`lidarcal.scan_segments.line_segments`, the V
    pipeline's segmenter, with the noise about lines of :func:`local_line_noise`: quantised
-   and repeated ranges allowed for) and the board segment chosen by consensus: rigid hypotheses
+   and repeated ranges allowed for; a segment longer than the board replaced by its board piece
+   and every gated run cut at the board's edges where a wall runs on in line with it,
+   :mod:`lidarcal.planes_wall`) and the board segment chosen by consensus: rigid hypotheses
    from the linear solution of five random views, every view's candidates scored
    against the board plane they predict (:func:`select_board_segments`);
 3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
