@@ -87,3 +87,19 @@ def test_a_run_on_beside_the_board_without_a_step_is_clipped_and_reported():
     lo, hi = -100 - 300, 800 + 300  # the pattern grown by half its shorter side
     assert u[i, 0] >= lo and u[j - 1, 0] <= hi and u[i - 1, 0] < lo and u[j, 0] > hi
     assert beside == pytest.approx(np.mean((u[:, 0] < lo) | (u[:, 0] > hi)))
+
+
+def test_the_wall_grid_script_runs_one_case():
+    # scripts/wall_grid.py (the README's measurements) on its smallest grid: one seed, the
+    # 10 mm wall at 3 mm noise, no real views; the same case as test_planes' truth test
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "wall_grid.py"
+    p = subprocess.run([sys.executable, str(script), "--no-real", "--seeds", "0", "--walls", "10",
+                        "--noise", "3"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    rows = [r for r in p.stdout.splitlines() if r.startswith("sim seed 0 noise 3")]
+    assert len(rows) == 2 and all(" 8/8 " in r for r in rows), p.stdout
+    assert "told-warnings 0" in rows[1] and ">= 1.000" in rows[1], rows[1]
