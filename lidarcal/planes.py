@@ -15,7 +15,9 @@ which is linear in the nine entries of ``H``. Steps:
    :func:`choose_corner_set`);
 2. straight segments of each scan (:func:`lidarcal.scan_segments.line_segments`, the V
    pipeline's segmenter, with the noise about lines of :func:`local_line_noise`: quantised
-   and repeated ranges allowed for) and the board segment chosen by consensus: rigid hypotheses
+   and repeated ranges allowed for; a segment longer than the board replaced by its board piece
+   and every gated run cut at the board's edges where a wall runs on in line with it,
+   :mod:`lidarcal.planes_wall`) and the board segment chosen by consensus: rigid hypotheses
    from the linear solution of five random views, every view's candidates scored
    against the board plane they predict (:func:`select_board_segments`);
 3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
@@ -63,6 +65,7 @@ from .geometry import Plane, plane_basis
 from .io.dataset import BoardSpec, CameraModel, DatasetError, write_json_atomic
 from .planes_checks import FLAT_STEP, direction_words, flat_valley, other_minima
 from .planes_linear import linear_extrinsics, select_board_segments
+from .planes_wall import MIN_STEP_SIGMAS, cut_candidates, cut_run, pattern_extent
 from .scan import scan_points
 from .scan_segments import MIN_POINTS, LineSegment, line_segments, local_line_noise
 
@@ -225,6 +228,7 @@ class ViewData:
     beams: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     candidates: list[LineSegment] = field(default_factory=list)
     note: str = ""
+    beside: float = 0.0  # share of the gated returns beyond the board, no step found (_gate_view)
 
     @property
     def points_mm(self) -> np.ndarray:
@@ -418,10 +422,7 @@ def _board_extent(bp: BoardPlane) -> tuple:
     pattern's corners in the board frame (one square beyond the outer inner corners) and, for
     the board's unknown margin, half the pattern's shorter side (the real TAPAS boards reach
     1.6 squares beyond their pattern)."""
-    c, r = bp.board.inner_corners
-    sq = bp.board.square_mm
-    lo, hi = np.array([-sq, -sq]), np.array([c * sq, r * sq])
-    return bp.R, bp.T, lo, hi, 0.5 * float(np.min(hi - lo))
+    return bp.R, bp.T, *pattern_extent(bp.board)
 
 
 def _share_off_board(view: ViewData, R: np.ndarray, T: np.ndarray) -> float:
@@ -445,6 +446,52 @@ def _lies_along_plane(view: ViewData, R: np.ndarray, T: np.ndarray, sigma_mm: fl
     s = (p - p.mean(0)) @ (p[-1] - p[0]) / max(np.linalg.norm(p[-1] - p[0]), 1e-9)
     b = np.polyfit(s, r, 1)[0] if np.ptp(s) > 0 else 0.0
     return abs(b) * np.ptp(s) <= 3.0 * sigma_mm
+
+
+def _beams_on_pattern(v: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Beams whose returns, mapped by ``(R, T)``, fall within the board's printed pattern (board
+    frame of eq. 1, :func:`lidarcal.planes_wall.pattern_extent`) whatever their distance from
+    its plane."""
+    with np.errstate(invalid="ignore"):
+        p = scan_points(v.angle_deg, v.range_mm)
+        u = (np.column_stack([p, np.zeros(len(p))]) @ R.T + T - v.board.T) @ v.board.R[:, :2]
+        lo, hi, _ = pattern_extent(v.board.board)
+        return np.flatnonzero(np.all((u >= lo) & (u <= hi), axis=1))
+
+
+def _gate_view(v: ViewData, R: np.ndarray, T: np.ndarray, tol_mm: float,
+               seed_beams: np.ndarray | None = None) -> np.ndarray:
+    """:func:`gate_board_points` of a view, then the board cut out of a wall in line with it
+    (:func:`lidarcal.planes_wall.cut_run`: the edges between the printed pattern and its grown
+    extent, mapped by ``(R, T)`` and the camera's board pose). The run gated is the one with
+    most returns on the printed pattern (else the one with most ``seed_beams``). The cut is sought on the run gated
+    at three times ``tol_mm`` (a wall's returns gated at ``tol_mm`` are those its noise pulls
+    nearer: their step would be biased low); where it is significant, the board's returns are
+    those between the steps at that wider gate (a patch of the board read a few mm off, a dark
+    square, no longer breaks the run). Sets ``v.beside``: the share of the gated run beyond the
+    board that no significant step separates from it (then dropped)."""
+    inside = _beams_on_pattern(v, R, T)
+    if len(inside) >= MIN_POINTS:  # the run the camera's board is on (not a wall piece beside it)
+        seed_beams = inside
+    run = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, tol_mm, seed_beams)
+    v.beside = 0.0
+    if len(run) < MIN_POINTS:
+        return run
+    wide = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, 3.0 * tol_mm, run)
+    p = scan_points(v.angle_deg[wide], v.range_mm[wide])
+    X = np.column_stack([p, np.zeros(len(p))]) @ R.T + T
+    u = (X - v.board.T) @ v.board.R[:, :2]
+    i, j, loose, cut = cut_run(p, u, v.board.board, MIN_POINTS)
+    if (i, j) == (0, len(wide)):
+        return run
+    if cut is not None and cut.significant:  # the board between the steps, at the wide gate
+        v.beside = loose
+        if j - i > 2 + MIN_POINTS:
+            i, j = i + (i > 0), j - (j < len(wide))  # mixed returns at a cut edge
+        return wide[i:j]
+    keep = run[(run >= wide[i]) & (run <= wide[j - 1])]
+    v.beside = 1.0 - len(keep) / len(run)
+    return keep
 
 
 def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -513,17 +560,18 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                                   "some views")
     tot = [float(np.hypot(v.sigma_range_mm, np.sqrt(v.board.cov[2, 2]))) for v in sub]
     gates = [max(5.0 * t, 5.0) for t in tot]  # a rigid hypothesis from five right views: ~1-2 t
+    cands = [cut_candidates(v.candidates, v.board.board, MIN_POINTS) for v in sub]
     if len(sub) >= MIN_VIEWS_CONSENSUS:
-        choice = select_board_segments([v.candidates for v in sub], [v.board.plane for v in sub],
+        choice = select_board_segments(cands, [v.board.plane for v in sub],
                                        gates, rng, boards=[_board_extent(v.board) for v in sub])
     else:  # too few views to cross-check: the segment with most returns in each scan
-        choice = [max(range(len(v.candidates)), key=lambda k: len(v.candidates[k].beams))
-                  if v.candidates else None for v in sub]
+        choice = [max(range(len(c)), key=lambda k: len(c[k].beams)) if c else None
+                  for c in cands]
         warnings.append(f"only {len(sub)} views: too few to cross-check which scan segment is the "
                         f"board (>= {MIN_VIEWS_CONSENSUS} needed), so the segment with most returns "
                         "was taken in each scan, and the linear start is underdetermined; check "
                         "the projections, and add views")
-    chosen = [(v, v.candidates[c]) for v, c in zip(sub, choice) if c is not None]
+    chosen = [(v, cs[c]) for v, cs, c in zip(sub, cands, choice) if c is not None]
     if len(chosen) < MIN_VIEWS:
         raise DatasetError(where, f"the scans of only {len(chosen)} view(s) agree on a board "
                                   "segment; check that the scan plane crosses the board in every "
@@ -537,15 +585,16 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
     R, T = ref.R, ref.T
     for factor in (6.0, 4.0):  # gate on the predicted plane and refine; then once more, tighter
         for v, t in zip(sub, tot):
-            if id(v) in seeds:
-                v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T,
-                                            factor * t, seeds[id(v)])
+            if id(v) in seeds:  # seeded by the last gate's board (the consensus piece may be
+                # a wall beside it, which the cut of the gated run has since left out)
+                last = v.beams if len(v.beams) >= MIN_POINTS else seeds[id(v)]
+                v.beams = _gate_view(v, R, T, factor * t, last)
         ref = refine_extrinsics(sub, R, T, anchor=(R0, T0))
         R, T = ref.R, ref.T
     # views outside the first consensus: gated on the final prediction, kept if they agree
     for v, t in zip(sub, tot):
         if id(v) not in seeds:
-            v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, R, T, 4.0 * t)
+            v.beams = _gate_view(v, R, T, 4.0 * t)
             if len(v.beams) >= MIN_POINTS and not _lies_along_plane(v, R, T, t):
                 v.beams = np.zeros(0, int)
     used, rms = [], []
@@ -580,6 +629,14 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                                 "beside the board the camera sees, on a surface in line with it: "
                                 "the board cannot be told from the surface behind it (a range "
                                 "step below the noise); hold the board farther from the wall")
+            elif v.beside > 0.1:
+                warnings.append(f"{v.name}: the scan runs on beside the board along a surface in "
+                                f"line with it and no range step (>= {MIN_STEP_SIGMAS:g} noise "
+                                "sigmas) marks the board's edge within its margin "
+                                f"({100 * v.beside:.0f} % of the returns near the board in doubt; "
+                                "those beyond the board's grown extent dropped): the board cannot "
+                                "be told from the surface behind it; hold the board farther from "
+                                "the wall")
     if ref.noise_scale > 3.0:
         warnings.append(f"residuals are {ref.noise_scale:.1f}x the noise model (range noise and "
                         "corner noise); the sigmas are scaled by it, but check for a bent board "
@@ -608,8 +665,7 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
                             f"{best[0]:.0f}, used")
             gate = {id(v): t for v, t in zip(sub, tot)}
             for v in uv:
-                v.beams = gate_board_points(v.angle_deg, v.range_mm, v.board.plane, best[1].R,
-                                            best[1].T, 4.0 * gate[id(v)], v.beams)
+                v.beams = _gate_view(v, best[1].R, best[1].T, 4.0 * gate[id(v)], v.beams)
             ref = refine_extrinsics([v for v in uv if len(v.beams) >= MIN_POINTS], best[1].R,
                                     best[1].T)
             R, T = ref.R, ref.T
