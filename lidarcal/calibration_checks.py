@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .geometry import Pose
+from .geometry import Line3D, Pose, line_difference
 from .io.dataset import Dataset, DatasetError
 from .turntable import angle_scale
 
@@ -138,13 +138,12 @@ def rigid_spread(res: CalibrationResult) -> dict | None:
     if not ratio:
         return None
     ja, ra = res.joint_model.axis, res.rigid_model.axis
-    foot = ja.point + ja.direction * ((res.joint_model.T_ref - ja.point) @ ja.direction)
-    off = foot - ra.point
+    direction_deg, point_mm = line_difference(Line3D(ra.point, ra.direction), Line3D(ja.point, ja.direction),
+                                              res.joint_model.T_ref)
     return {"ratio": ratio, "centre_mm": d, "sigma_mm": sig,
             "z_axis_deg": {i: angle(joint[i], rigid[i], 2) for i in psi},
             "x_axis_deg": {i: angle(joint[i], rigid[i], 0) for i in psi},
-            "axis_direction_deg": float(np.degrees(np.arccos(min(abs(ja.direction @ ra.direction), 1.0)))),
-            "axis_point_mm": float(np.linalg.norm(off - ra.direction * (off @ ra.direction)))}
+            "axis_direction_deg": direction_deg, "axis_point_mm": point_mm}
 
 
 def check_z_axis_hint(ds: Dataset, samples: list[Pose]) -> list[str]:

@@ -173,6 +173,15 @@ class Line3D:
         return self.point + np.outer(p @ self.direction, self.direction)
 
 
+def line_difference(a: Line3D, b: Line3D, near: np.ndarray) -> tuple[float, float]:
+    """Two estimates of one line (e.g. two fits of the turntable axis, eq. 18): the angle
+    between their directions (deg, sign-free) and the distance (mm) of ``b``'s point nearest
+    ``near`` (e.g. the LiDAR centre) from ``a``."""
+    ka, kb = unit(a.direction), unit(b.direction)
+    angle = float(np.degrees(np.arccos(min(abs(float(ka @ kb)), 1.0))))
+    return angle, float(a.distance(b.foot(near))[0])
+
+
 def nearest_rotation(M: np.ndarray) -> tuple[np.ndarray, float]:
     """Nearest proper rotation to ``M`` in the Frobenius norm (SVD), and that distance.
 

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import theilslopes
 
-from .geometry import Pose, unit
+from .geometry import Line3D, Pose, line_difference, unit
 from .turntable import fit_rigid
 
 #: a slope this many of its sigmas from 1 is the encoder's scale, not the samples' noise
@@ -84,13 +84,10 @@ def turn_scale_spread(psi_deg, samples: Sequence[Pose], rigid, scale: TurnScale)
         c = np.einsum("ni,ni->n", Ra[:, :, col], Rb[:, :, col])
         return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
 
-    ka, kb = rigid.axis.direction, other.axis.direction
-    foot = other.axis.point + kb * ((Ta.mean(0) - other.axis.point) @ kb)
-    off = foot - rigid.axis.point
+    direction_deg, point_mm = line_difference(Line3D(rigid.axis.point, rigid.axis.direction),
+                                              Line3D(other.axis.point, other.axis.direction), Ta.mean(0))
     return {"centre_mm": np.linalg.norm(Ta - Tb, axis=1), "z_axis_deg": angle(2),
-            "x_axis_deg": angle(0),
-            "axis_direction_deg": float(np.degrees(np.arccos(min(abs(ka @ kb), 1.0)))),
-            "axis_point_mm": float(np.linalg.norm(off - ka * (off @ ka)))}
+            "x_axis_deg": angle(0), "axis_direction_deg": direction_deg, "axis_point_mm": point_mm}
 
 
 def turn_scale_warnings(res, psi: np.ndarray, samples: Sequence[Pose], limit_sigmas: float) -> list[str]:

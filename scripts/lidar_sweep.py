@@ -151,6 +151,16 @@ def spot_variants() -> list[Variant]:
     ]
 
 
+def _map_psi(rows: list[str], fn) -> list[str]:
+    """positions.csv rows with ``psi_deg`` (the second column) replaced by ``fn(psi_deg)``."""
+    out = []
+    for r in rows:
+        f = r.split(",")
+        f[1] = f"{fn(float(f[1])):.4f}"
+        out.append(",".join(f))
+    return out
+
+
 def _post(ds: Path, how: str, rng: np.random.Generator) -> None:
     """Rewrite positions.csv: rows shuffled ("shuffle"), angles wrapped into [0, 360) ("wrap")
     or their turns from the first row scaled by ``1 + e`` ("scale<e>": an encoder scale error)."""
@@ -161,21 +171,10 @@ def _post(ds: Path, how: str, rng: np.random.Generator) -> None:
     if how == "shuffle":
         rows = [rows[i] for i in rng.permutation(len(rows))]
     elif how.startswith("scale"):  # an encoder/gear scale error: psi - psi_0 read (1 + e) x
-        e = float(how[5:])
-        f0 = float(rows[0].split(",")[1])
-        out = []
-        for r in rows:
-            f = r.split(",")
-            f[1] = f"{f0 + (float(f[1]) - f0) * (1.0 + e):.4f}"
-            out.append(",".join(f))
-        rows = out
+        e, f0 = float(how[5:]), float(rows[0].split(",")[1])
+        rows = _map_psi(rows, lambda a: f0 + (a - f0) * (1.0 + e))
     elif how == "wrap":
-        out = []
-        for r in rows:
-            f = r.split(",")
-            f[1] = f"{float(f[1]) % 360.0:.4f}"
-            out.append(",".join(f))
-        rows = out
+        rows = _map_psi(rows, lambda a: a % 360.0)
     else:
         raise ValueError(how)
     (ds / "positions.csv").write_text("\n".join([head, *rows]) + "\n")

@@ -16,7 +16,6 @@ reported (or unperturbed) 1-sigma, and whether the "cannot be told" warning was 
 from __future__ import annotations
 
 import argparse
-import copy
 import sys
 import time
 from pathlib import Path
@@ -29,38 +28,9 @@ sys.path.insert(0, str(ROOT))
 from lidarcal.degeneracy import pose_difference
 from lidarcal.io.dataset import BoardSpec
 from lidarcal.planes import calibrate_planes, run_planes
-from lidarcal.scan_segments import line_segments, local_line_noise
-from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes
+from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes, wall_beside_board
 
 TOLD = "cannot be told from the surface behind it"
-
-
-def wall_behind(view, dist_mm: float, noise_mm: float, rng: np.random.Generator):
-    """A copy of a real view whose scan beside the board (120 beams each side) is a wall
-    ``dist_mm`` behind the board's line with the view's own range noise, and ``noise_mm``
-    Gaussian range noise added to the board and the wall, ranges in integer mm."""
-    v = copy.copy(view)
-    b = view.beams
-    r = view.range_mm.astype(float).copy()
-    th = np.radians(view.angle_deg)
-    pts = view.points_mm
-    c = pts.mean(0)
-    u = np.linalg.svd(pts - c)[2][0]
-    nrm = np.array([-u[1], u[0]])
-    off = nrm @ c + dist_mm * np.sign(nrm @ c)
-    sides = (slice(max(b.min() - 120, 0), b.min()), slice(b.max() + 1, b.max() + 121))
-    for s in sides:
-        r[s] = off / (np.column_stack([np.cos(th[s]), np.sin(th[s])]) @ nrm)
-    for s in sides:  # the wall as noisy as the board (the view's own noise about lines)
-        r[s] += rng.normal(0, view.sigma_range_mm, len(r[s]))
-    span = slice(sides[0].start, sides[1].stop)
-    r[span] = np.rint(r[span] + rng.normal(0, noise_mm, len(r[span])))
-    v.range_mm = r
-    v.sigma_range_mm = max(local_line_noise(v.angle_deg, r), 0.3)
-    v.candidates = line_segments(v.angle_deg, r, range_noise_mm=local_line_noise(v.angle_deg, r),
-                                 steps=True)[0]
-    v.beams = np.zeros(0, int)
-    return v
 
 
 def _row(label: str, res, d6: np.ndarray, sd: np.ndarray, extra: str = "") -> None:
@@ -99,7 +69,7 @@ def real(walls, noises) -> None:
     for noise in noises:
         for wall in walls:
             rng = np.random.default_rng(int(10 * wall + noise))
-            views = [wall_behind(v, wall, noise, rng) for v in full.views]
+            views = [wall_beside_board(v, wall, noise, rng) for v in full.views]
             res = calibrate_planes(views)
             d6 = pose_difference(res.R, res.T, full.R, full.T)
             kept = [len(np.intersect1d(v.beams, w.beams)) / len(v.beams)

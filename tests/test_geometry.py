@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from lidarcal.geometry import (
+    Line3D,
     Plane,
     Pose,
     angle_between_deg,
@@ -18,6 +19,7 @@ from lidarcal.geometry import (
     fit_plane,
     fit_plane_algebraic,
     intersect_planes,
+    line_difference,
     nearest_rotation,
     plane_basis,
     rotate_perpendicular,
@@ -143,3 +145,23 @@ def test_skew_is_the_cross_product_matrix_of_stacked_vectors():
         np.testing.assert_allclose((S @ u[..., None])[..., 0], np.cross(v, u), atol=1e-14)
         np.testing.assert_array_equal(S, -np.swapaxes(S, -1, -2))
         assert np.all(np.diagonal(S, axis1=-2, axis2=-1) == 0)
+
+
+
+@given(unit_vectors, unit_vectors, st.floats(0.0, 0.5), st.floats(0.0, 50.0), st.floats(-500.0, 500.0))
+def test_line_difference_is_the_tilt_and_the_offset_near_a_point(k, a, tilt, shift, t):
+    """Two estimates of a line: a parallel copy ``shift`` mm away gives (0 deg, shift); a copy
+    tilted by ``tilt`` (rad) about a perpendicular through the point nearest ``near`` gives
+    (tilt, 0); whichever way round either direction points."""
+    p = np.cross(k, a)
+    if np.linalg.norm(p) < 0.1:
+        return
+    p /= np.linalg.norm(p)
+    base = Line3D(np.zeros(3), k)
+    near = t * k + 30.0 * p  # 30 mm beside the line, at ``t`` along it
+    parallel = Line3D(shift * np.cross(k, p) + 11.0 * k, -k)
+    angle, dist = line_difference(base, parallel, near)
+    assert angle == pytest.approx(0.0, abs=1e-5) and dist == pytest.approx(shift, abs=1e-6)
+    tilted = Line3D(t * k, rotation_about_axis(p, tilt) @ k)
+    angle, dist = line_difference(base, tilted, near)
+    assert angle == pytest.approx(np.degrees(tilt), abs=1e-5) and dist == pytest.approx(0.0, abs=1e-6)

@@ -21,7 +21,12 @@ from lidarcal.overlay import lidar_on_image, project_returns
 from lidarcal.planes import calibrate_planes, leave_one_out, run_planes
 from lidarcal.planes_plots import board_return_share
 from lidarcal.scan import line_segments, local_line_noise
-from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes, write_oneboard
+from lidarcal.synthetic.oneboard import (
+    simulate_oneboard,
+    views_for_planes,
+    wall_beside_board,
+    write_oneboard,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 TAPAS = REPO / "data" / "real_tapas"
@@ -378,36 +383,11 @@ def test_planes_without_a_board_is_one_line_and_exit_2(tmp_path):
 # ---------------------------------------------------------------------------
 # a board held a few cm in front of a wall (the scan runs wall - board - wall)
 
-def _wall_behind(view, dist_mm: float, noise_mm: float = 0.0, seed: int = 0):
-    """A copy of a real view whose scan beside the board (120 beams each side) is a wall
-    ``dist_mm`` behind the board's line, ranges in integer mm (as scripts/real_robustness.py);
-    ``noise_mm`` Gaussian range noise added to the board and the wall (scripts/wall_grid.py)."""
-    import copy
-
-    v = copy.copy(view)
-    b = view.beams
-    r = view.range_mm.astype(float).copy()
-    th = np.radians(view.angle_deg)
-    pts = view.points_mm
-    c = pts.mean(0)
-    u = np.linalg.svd(pts - c)[2][0]
-    nrm = np.array([-u[1], u[0]])
-    off = nrm @ c + dist_mm * np.sign(nrm @ c)
-    sides = (slice(max(b.min() - 120, 0), b.min()), slice(b.max() + 1, b.max() + 121))
-    for s in sides:
-        r[s] = np.rint(off / (np.column_stack([np.cos(th[s]), np.sin(th[s])]) @ nrm))
-    if noise_mm > 0:
-        rng = np.random.default_rng(seed)
-        for s in sides:  # the wall as noisy as the board (the view's own noise about lines)
-            r[s] += rng.normal(0, view.sigma_range_mm, len(r[s]))
-        span = slice(sides[0].start, sides[1].stop)
-        r[span] = np.rint(r[span] + rng.normal(0, noise_mm, len(r[span])))
-        v.sigma_range_mm = max(local_line_noise(v.angle_deg, r), 0.3)
-    v.range_mm = r
-    v.candidates = line_segments(v.angle_deg, r, range_noise_mm=local_line_noise(v.angle_deg, r),
-                                 steps=True)[0]
-    v.beams = np.zeros(0, int)
-    return v
+def _wall_behind(view, dist_mm: float, noise_mm: float = 0.0, seed: int | None = None):
+    """A wall ``dist_mm`` behind a real view's board (as scripts/real_robustness.py); with a
+    ``seed``, ``noise_mm`` range noise added (scripts/wall_grid.py)."""
+    return wall_beside_board(view, dist_mm, noise_mm,
+                             None if seed is None else np.random.default_rng(seed))
 
 
 @pytest.mark.parametrize("dist_mm", [40.0, 150.0])

@@ -154,6 +154,42 @@ def simulate_oneboard(seed: int, n_views: int = 8, *, degenerate: str | None = N
     return OneBoardRig(cam, board, R, T, range_noise_mm, corner_noise_px, views, statics)
 
 
+def wall_beside_board(view, dist_mm: float, noise_mm: float = 0.0,
+                      rng: np.random.Generator | None = None, beams: int = 120):
+    """A copy of a real view (:class:`lidarcal.planes.ViewData`) whose scan beside the board
+    (``beams`` beams each side) is a wall ``dist_mm`` behind the board's line, ranges in integer
+    mm; with ``rng``, the wall gets the view's own noise about lines and ``noise_mm`` Gaussian
+    range noise is added to the board and the wall (scripts/wall_grid.py, tests/test_planes.py).
+    The candidates are segmented again and the board's beams forgotten."""
+    import copy
+
+    from ..scan_segments import line_segments, local_line_noise
+
+    v = copy.copy(view)
+    b = view.beams
+    r = view.range_mm.astype(float).copy()
+    th = np.radians(view.angle_deg)
+    pts = view.points_mm
+    c = pts.mean(0)
+    u = np.linalg.svd(pts - c)[2][0]
+    nrm = np.array([-u[1], u[0]])
+    off = nrm @ c + dist_mm * np.sign(nrm @ c)
+    sides = (slice(max(b.min() - beams, 0), b.min()), slice(b.max() + 1, b.max() + 1 + beams))
+    for s in sides:
+        r[s] = np.rint(off / (np.column_stack([np.cos(th[s]), np.sin(th[s])]) @ nrm))
+    if rng is not None:
+        for s in sides:  # the wall as noisy as the board (the view's own noise about lines)
+            r[s] += rng.normal(0, view.sigma_range_mm, len(r[s]))
+        span = slice(sides[0].start, sides[1].stop)
+        r[span] = np.rint(r[span] + rng.normal(0, noise_mm, len(r[span])))
+        v.sigma_range_mm = max(local_line_noise(v.angle_deg, r), 0.3)
+    v.range_mm = r
+    v.candidates = line_segments(v.angle_deg, r, range_noise_mm=local_line_noise(v.angle_deg, r),
+                                 steps=True)[0]
+    v.beams = np.zeros(0, int)
+    return v
+
+
 def views_for_planes(rig: OneBoardRig):
     """The views as :func:`lidarcal.planes.calibrate_planes` takes them (board planes from the
     noisy corners, candidate segments from the scans), without rendering photos."""
