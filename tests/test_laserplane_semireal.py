@@ -67,9 +67,9 @@ def jpeg_photos(tmp_path_factory) -> Path:
 def test_jpeg_photos_of_real_boards_give_the_plane(jpeg_photos) -> None:
     r, ang, off, used = _errors(jpeg_photos)
     assert len(used) == 4, r.warnings
-    # seeds 3/5/7 measured, centres on the luma where they scatter less (lidarcal.stripe_luma;
-    # 11 of the 12 photos): 0.033-0.044 deg, 0.025-0.130 mm, rms 0.25-0.30 mm (~0.15 px of
-    # 1.9 mm); on the colour response only (Steger): 0.010-0.028 deg, 0.019-0.049 mm, rms
+    # seeds 3/5/7 measured, centres on the luma at its own width (lidarcal.stripe_luma; all
+    # 12 photos): 0.015-0.040 deg, 0.082-0.132 mm, rms 0.26-0.29 mm (~0.14 px of 1.9 mm);
+    # before the luma pass (an earlier measurement) on the colour response only (Steger): 0.010-0.028 deg, 0.019-0.049 mm, rms
     # 0.46-0.49 mm; the centroid centres: 0.065-0.108 deg, 0.066-0.137 mm, rms 0.77-0.86 mm.
     # (Seed 3 with the true board poses: colour 0.034 deg 0.043 mm, luma 0.037 deg 0.049 mm:
     # with four photos the plane's error is the board poses', the centres' error against
@@ -79,7 +79,7 @@ def test_jpeg_photos_of_real_boards_give_the_plane(jpeg_photos) -> None:
     truth, _ = _truth(jpeg_photos)
     for p in used:  # every photo's stripe on the true plane, none off by a pixel
         d = truth.distance(p.points_mm)
-        # measured: rms 0.23-0.42 mm, largest 0.54-1.16 mm (colour only: 0.24-0.62 and
+        # measured: rms 0.22-0.40 mm, largest 0.49-1.24 mm (earlier, colour only: 0.24-0.62 and
         # 0.71-1.69 mm; centroid: 0.52-1.04, 1.2-2.8 mm)
         assert np.sqrt(np.mean(d ** 2)) < 0.55 and np.abs(d).max() < 1.5, p.name
 
