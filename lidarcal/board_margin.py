@@ -52,6 +52,22 @@ class BoardMargins:
     margin_mm: dict[str, float | None]
     sigma_mm: dict[str, float | None]
     per_view: list[dict[str, SideEdge]]
+    #: the same pooled per axis of the board frame (``u``: left and right, ``v``: top and
+    #: bottom), which is what the scan's gating uses: a pattern found turned by 180 degrees
+    #: exchanges left and right, so a side's name is not the same physical side in every view
+    axis_margin_mm: dict[str, float | None] = None  # type: ignore[assignment]
+    axis_sigma_mm: dict[str, float | None] = None  # type: ignore[assignment]
+
+    def grow_mm(self, assumed_mm: float, transposed: bool = False) -> np.ndarray | None:
+        """Per board axis ``(u, v)`` the extent beyond the pattern in which the board's edge lies
+        (the pooled margin plus three sigmas; ``assumed_mm`` on an axis not measured); None if
+        neither axis is measured. ``transposed``: for a view whose pattern was found the other
+        way round (its ``u`` is this one's ``v``)."""
+        m, s = self.axis_margin_mm or {}, self.axis_sigma_mm or {}
+        if all(m.get(a) is None for a in "uv"):
+            return None
+        g = np.array([assumed_mm if m.get(a) is None else m[a] + 3.0 * s[a] for a in "uv"])
+        return g[::-1].copy() if transposed else g
 
     def grown(self, side: str, assumed_mm: float) -> float:
         """The extent beyond ``side`` in which the board's edge lies: the measured margin plus
@@ -61,6 +77,7 @@ class BoardMargins:
 
     def to_dict(self) -> dict:
         return {"margin_mm": self.margin_mm, "sigma_mm": self.sigma_mm,
+                "axis_margin_mm": self.axis_margin_mm, "axis_sigma_mm": self.axis_sigma_mm,
                 "per_view": [{s: [round(e.margin_mm, 1), round(e.contrast, 1)]
                               for s, e in d.items()} for d in self.per_view]}
 
@@ -145,19 +162,26 @@ def combine_margins(per_view: list[dict[str, SideEdge]]) -> BoardMargins:
     all views that see the side have a clear edge within :data:`AGREE_MM` of it."""
     margin: dict[str, float | None] = {}
     sigma: dict[str, float | None] = {}
-    for side in SIDES:
-        seen = [e[side] for e in per_view if side in e]
-        clear = np.array([e.margin_mm for e in seen if e.contrast >= MIN_CONTRAST])
-        margin[side] = sigma[side] = None
-        if len(seen) < 3 or len(clear) < 3:
-            continue
-        m = float(np.median(clear))
-        agree = np.abs(clear - m) <= AGREE_MM
-        if np.count_nonzero(agree) * 2 <= len(seen):
-            continue
-        s = max(1.4826 * float(np.median(np.abs(clear[agree] - m))), STEP_MM)
-        margin[side], sigma[side] = round(m, 2), round(s, 2)
-    return BoardMargins(margin, sigma, per_view)
+    groups = {s: (s,) for s in SIDES} | {"u": ("left", "right"), "v": ("top", "bottom")}
+    for name, sides in groups.items():
+        seen = [e[side] for e in per_view for side in sides if side in e]
+        margin[name], sigma[name] = _consensus(seen)
+    return BoardMargins({s: margin[s] for s in SIDES}, {s: sigma[s] for s in SIDES}, per_view,
+                        {a: margin[a] for a in "uv"}, {a: sigma[a] for a in "uv"})
+
+
+def _consensus(seen: list[SideEdge]) -> tuple[float | None, float | None]:
+    """Median and robust sigma of the clear edges among ``seen``, or ``(None, None)`` unless
+    three are clear and more than half of ``seen`` agree within :data:`AGREE_MM`."""
+    clear = np.array([e.margin_mm for e in seen if e.contrast >= MIN_CONTRAST])
+    if len(seen) < 3 or len(clear) < 3:
+        return None, None
+    m = float(np.median(clear))
+    agree = np.abs(clear - m) <= AGREE_MM
+    if np.count_nonzero(agree) * 2 <= len(seen):
+        return None, None
+    s = max(1.4826 * float(np.median(np.abs(clear[agree] - m))), STEP_MM)
+    return round(m, 2), round(s, 2)
 
 
 def measure_margins(images: list[np.ndarray], camera: CameraModel, poses: list[tuple],
