@@ -551,7 +551,7 @@ def apply_board_margins(views: list[ViewData], images: list, camera: CameraModel
                         [v.board.board for v, _ in have])
     ref = have[0][0].board.board.inner_corners
     for v, _ in have:
-        _, hi, grow = pattern_extent(v.board.board)
+        grow = pattern_extent(v.board.board)[2]
         g = m.grow_mm(grow, transposed=v.board.board.inner_corners != ref)
         if g is not None:
             v.board = replace(v.board, grow_mm=g)

@@ -30,8 +30,12 @@ sys.path.insert(0, str(ROOT))
 from lidarcal.degeneracy import pose_difference
 from lidarcal.io.dataset import BoardSpec
 from lidarcal.planes import apply_board_margins, calibrate_planes, run_planes
-from lidarcal.synthetic.oneboard import (render_photo, simulate_oneboard, views_for_planes,
-                                         wall_beside_board)
+from lidarcal.synthetic.oneboard import (
+    render_photo,
+    simulate_oneboard,
+    views_for_planes,
+    wall_beside_board,
+)
 
 TOLD = "cannot be told from the surface behind it"
 
