@@ -30,20 +30,25 @@ from .io.dataset import BoardSpec
 from .scan_segments import LineSegment, _mad_scale, fit_line_2d
 
 
-def pattern_extent(board: BoardSpec) -> tuple[np.ndarray, np.ndarray, float]:
+def pattern_extent(board: BoardSpec, grow_mm: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, float | np.ndarray]:
     """``(lo, hi, grow)``: the printed pattern's corners in the board frame (mm; one square beyond
-    the outer inner corners) and the board's unknown margin, half the pattern's shorter side (the
-    real TAPAS boards reach 1.6 squares beyond their pattern)."""
+    the outer inner corners) and how far beyond them the board's edge may lie: ``grow_mm`` per
+    board axis ``(u, v)`` where the photos measured the margin
+    (:meth:`lidarcal.board_margin.BoardMargins.grow_mm`), else the margin assumed, half the
+    pattern's shorter side (the real TAPAS boards reach 1.6 squares beyond their pattern)."""
     c, r = board.inner_corners
     sq = board.square_mm
     lo, hi = np.array([-sq, -sq]), np.array([c * sq, r * sq])
+    if grow_mm is not None:
+        return lo, hi, np.asarray(grow_mm, float)
     return lo, hi, 0.5 * float(np.min(hi - lo))
 
 
-def max_chord_mm(board: BoardSpec) -> float:
+def max_chord_mm(board: BoardSpec, grow_mm: np.ndarray | None = None) -> float:
     """The longest straight line across the board: the diagonal of its pattern grown by the margin
     of :func:`pattern_extent` on every side (mm)."""
-    lo, hi, grow = pattern_extent(board)
+    lo, hi, grow = pattern_extent(board, grow_mm)
     return float(np.linalg.norm(hi - lo + 2 * grow))
 
 
@@ -137,12 +142,12 @@ def best_cut(p: np.ndarray, starts: np.ndarray, stops: np.ndarray,
 
 
 def cut_candidates(candidates: list[LineSegment], board: BoardSpec,
-                   min_points: int) -> list[LineSegment]:
+                   min_points: int, grow_mm: np.ndarray | None = None) -> list[LineSegment]:
     """The scan's candidate segments with every one longer than the board's longest chord
     (:func:`max_chord_mm`: it cannot be all board) replaced by its board piece (:func:`best_cut`,
     at most that long, ``min_points`` in every piece) when the three-line model is significant;
     others are kept as they are."""
-    chord = max_chord_mm(board)
+    chord = max_chord_mm(board, grow_mm)
     out = []
     for s in candidates:
         p = s.points
@@ -162,8 +167,8 @@ def cut_candidates(candidates: list[LineSegment], board: BoardSpec,
     return out
 
 
-def cut_run(p: np.ndarray, u: np.ndarray, board: BoardSpec,
-            min_points: int) -> tuple[int, int, float, BoardCut | None]:
+def cut_run(p: np.ndarray, u: np.ndarray, board: BoardSpec, min_points: int,
+            grow_mm: np.ndarray | None = None) -> tuple[int, int, float, BoardCut | None]:
     """The board's returns in a gated run of ordered scan points ``p`` (N, 2) whose board-frame
     coordinates (the pose guess and the camera's board pose, eq. 1) are ``u`` (N, 2), mm.
 
@@ -173,10 +178,17 @@ def cut_run(p: np.ndarray, u: np.ndarray, board: BoardSpec,
     board piece's share between the pattern and that cut), and the test (None if not run). The
     breakpoints may fall only between the printed pattern and its grown extent (the board's
     unknown margin); returns beyond the extent are outer pieces (the wall's line). A run with
-    fewer than ``min_points`` returns beside the pattern on both sides is left whole."""
-    lo, hi, grow = pattern_extent(board)
+    fewer than ``min_points`` returns beside the pattern on both sides is left whole. With the
+    margin measured in the photos (``grow_mm``, :func:`pattern_extent`) the returns beyond the
+    grown extent (the margin plus three sigmas) are surely not the board's: with no significant
+    step they are dropped without doubt (``beside`` counts only those beyond an assumed extent),
+    and a cut at the grown extent is the board's edge found."""
+    lo, hi, grow = pattern_extent(board, grow_mm)
+    measured = np.asarray(grow) < pattern_extent(board)[2]  # per axis: the photos pinned the edge
     n = len(p)
-    beyond = np.any((u < lo - grow) | (u > hi + grow), axis=1)
+    out = (u < lo - grow) | (u > hi + grow)
+    beyond = np.any(out, axis=1)
+    in_doubt = np.any(out & ~measured, axis=1)  # beyond an assumed extent: maybe the board's
     inside = np.all((u >= lo) & (u <= hi), axis=1)
     if not np.any(inside):
         return 0, n, 0.0, None
@@ -197,5 +209,6 @@ def cut_run(p: np.ndarray, u: np.ndarray, board: BoardSpec,
         near = max(3, n // 50)  # returns: "at" the extent, give or take its noisy mapping
         loose = (cut.start - a if 0 < i_lo and cut.start <= i_lo + near else 0) + (
             cut.stop - b if j_hi < n and cut.stop >= j_hi - near else 0)
+        loose = 0 if np.all(measured) else loose
         return cut.start, cut.stop, loose / (cut.stop - cut.start), cut
-    return i_lo, j_hi, float(np.mean(beyond)), cut
+    return i_lo, j_hi, float(np.mean(in_doubt)), cut

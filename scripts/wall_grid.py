@@ -5,12 +5,14 @@ Simulated one-board views (:func:`lidarcal.synthetic.oneboard.simulate_oneboard`
 truth; the real TAPAS views (data/real_tapas) with a wall inserted beside the board (the board's
 line shifted back by the step, 120 beams each side, as scripts/real_robustness.py, with the view's
 own noise about lines, 3.7-4.3 mm) and Gaussian range noise added to board and wall (integer mm)
-are scored against the unperturbed fit. Prints,
+are scored against the unperturbed fit. The board's margins are measured in the photos
+(:mod:`lidarcal.board_margin`; the simulated photos rendered) unless ``--assumed-margin`` (the
+margin assumed, half the pattern's shorter side, as before the measurement). Prints,
 per case: views used, the translation and rotation error, the largest error in units of the
 reported (or unperturbed) 1-sigma, and whether the "cannot be told" warning was given.
 
     .venv/bin/python scripts/wall_grid.py [--seeds 0 1] [--walls 5 10 20 40] [--noise 1 3 5]
-                                          [--no-real] [--no-sim]
+                                          [--no-real] [--no-sim] [--assumed-margin]
 """
 
 from __future__ import annotations
@@ -27,8 +29,13 @@ sys.path.insert(0, str(ROOT))
 
 from lidarcal.degeneracy import pose_difference
 from lidarcal.io.dataset import BoardSpec
-from lidarcal.planes import calibrate_planes, run_planes
-from lidarcal.synthetic.oneboard import simulate_oneboard, views_for_planes, wall_beside_board
+from lidarcal.planes import apply_board_margins, calibrate_planes, run_planes
+from lidarcal.synthetic.oneboard import (
+    render_photo,
+    simulate_oneboard,
+    views_for_planes,
+    wall_beside_board,
+)
 
 TOLD = "cannot be told from the surface behind it"
 
@@ -47,12 +54,17 @@ def _sd(res) -> np.ndarray:
                     + [x if x is not None else np.nan for x in res.uncertainty.translation_mm])
 
 
-def simulated(seeds, walls, noises) -> None:
+def simulated(seeds, walls, noises, assumed: bool) -> None:
     for noise in noises:
         for seed in seeds:
             for wall in [None, *walls]:
                 rig = simulate_oneboard(seed, 8, wall_behind_mm=wall, range_noise_mm=noise)
                 views = views_for_planes(rig)
+                if not assumed:
+                    m = apply_board_margins(views, [render_photo(rig, v, k) for k, v in
+                                                    enumerate(rig.views)], rig.camera)
+                    print(f"  margins measured {m.axis_margin_mm} +- {m.axis_sigma_mm} mm "
+                          f"(truth {rig.views[0].rect.pattern[3]:g})")
                 res = calibrate_planes(views)
                 d6 = pose_difference(res.R, res.T, rig.R, rig.T)
                 on = [np.mean(t.on_board[v.beams]) for v, t, u in zip(res.views, rig.views, res.used)
@@ -61,9 +73,15 @@ def simulated(seeds, walls, noises) -> None:
                      f"  on-board share of the returns used >= {min(on):.3f}")
 
 
-def real(walls, noises) -> None:
+def real(walls, noises, assumed: bool) -> None:
     full = run_planes(ROOT / "data/real_tapas", ROOT / "data/real_tapas/camera.json",
                       BoardSpec((8, 5), 100.0))
+    if not assumed:  # the margins measured in the photos (the reference fit is without them)
+        import cv2
+
+        apply_board_margins(full.views, [cv2.imread(str(p.image_path), cv2.IMREAD_GRAYSCALE)
+                                         for p in full.pairs], full.camera)
+    print(f"TAPAS grown extent per axis (u, v): {full.views[0].board.grow_mm} mm")
     sd = np.sqrt(np.diag(full.uncertainty.covariance))
     print(f"TAPAS unperturbed: {sum(full.used)} views, sigma T {np.round(sd[3:], 2)} mm")
     for noise in noises:
@@ -85,12 +103,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise", nargs="*", type=float, default=[1.0, 3.0, 5.0])
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--no-sim", action="store_true")
+    ap.add_argument("--assumed-margin", action="store_true")
     a = ap.parse_args(argv)
     t0 = time.process_time()
     if not a.no_sim:
-        simulated(a.seeds, a.walls, a.noise)
+        simulated(a.seeds, a.walls, a.noise, a.assumed_margin)
     if not a.no_real:
-        real(a.walls, a.noise)
+        real(a.walls, a.noise, a.assumed_margin)
     print(f"CPU {time.process_time() - t0:.0f} s")
     return 0
 

@@ -104,3 +104,23 @@ def test_the_wall_grid_script_runs_one_case():
     rows = [r for r in p.stdout.splitlines() if r.startswith("sim seed 0 noise 3")]
     assert len(rows) == 2 and all(" 8/8 " in r for r in rows), p.stdout
     assert "told-warnings 0" in rows[1] and ">= 1.000" in rows[1], rows[1]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_measured_margin_pins_the_edge_of_a_board_one_noise_sigma_before_a_wall(seed):
+    # a board 52 mm wider than its pattern each side (beams 200-299, 10.04 mm/beam) 3 mm before
+    # a wall at 3 mm noise (one sigma: no significant step); with the margin measured
+    # (52 mm + 3 x 1 mm) the kept returns end within one beam of the board's edges and none is
+    # in doubt; with the assumed margin (300 mm) about 30 wall returns each side are kept
+    ang, r = _wall_scan(3.0, 3.0, seed)
+    p = _points(ang, r)
+    u = np.column_stack([-152 + (np.arange(len(p)) - 200 + 0.5) * 10.04, np.full(len(p), 200.0)])
+    board = BoardSpec((8, 5), 100.0)
+    i, j, beside, cut = cut_run(p, u, board, 8, np.array([55.0, 55.0]))
+    if cut is not None and cut.significant:  # a cut found: at the board's edges
+        assert abs(i - 200) <= 1 and abs(j - 300) <= 1
+    else:
+        assert 199 <= i <= 200 and 300 <= j <= 301
+    assert beside == 0.0
+    i0, j0, beside0, _ = cut_run(p, u, board, 8)
+    assert 200 - i0 >= 20 and j0 - 300 >= 20 and beside0 > 0.1
