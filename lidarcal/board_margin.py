@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .geometry import MAD_TO_SIGMA
 from .io.dataset import BoardSpec, CameraModel
 
 #: Board-plane resampling step (mm per pixel of the warped strips).
@@ -135,7 +136,7 @@ def side_edges(image: np.ndarray, camera: CameraModel, R: np.ndarray, T: np.ndar
                                          (0, 0), 1.5), axis=1)
         prof = np.abs(np.nanmedian(np.where(np.isfinite(strip), g, np.nan), axis=0))
         k = d[:n_in] >= SKIP_MM
-        noise = 1.4826 * np.median(np.abs(prof[k] - np.median(prof[k]))) + 1e-9
+        noise = MAD_TO_SIGMA * np.median(np.abs(prof[k] - np.median(prof[k]))) + 1e-9
         z = (prof - np.median(prof[k])) / noise
         peak = np.zeros(len(prof), bool)
         peak[1:-1] = (prof[1:-1] > prof[:-2]) & (prof[1:-1] >= prof[2:])
@@ -180,7 +181,7 @@ def _consensus(seen: list[SideEdge]) -> tuple[float | None, float | None]:
     agree = np.abs(clear - m) <= AGREE_MM
     if np.count_nonzero(agree) * 2 <= len(seen):
         return None, None
-    s = max(1.4826 * float(np.median(np.abs(clear[agree] - m))), STEP_MM)
+    s = max(MAD_TO_SIGMA * float(np.median(np.abs(clear[agree] - m))), STEP_MM)
     return round(m, 2), round(s, 2)
 
 
