@@ -21,17 +21,6 @@ from pathlib import Path
 import numpy as np
 
 
-def bag_start_s(bag: Path) -> float:
-    from lidarcal.io.bag_read import open_bag
-    from lidarcal.synthetic.bag import T0_NS
-
-    r = open_bag(bag)
-    try:
-        return (r.start_time - T0_NS) * 1e-9
-    finally:
-        r.close()
-
-
 def planes_vs_truth(folder: Path, rig) -> tuple[float, float, int]:
     from scipy.spatial.transform import Rotation
 
@@ -46,6 +35,7 @@ def planes_vs_truth(folder: Path, rig) -> tuple[float, float, int]:
 
 def one(work: Path, name: str, seed: int, n_views: int, **kw) -> dict:
     from lidarcal.io.bag_views import import_views
+    from lidarcal.synthetic.bag import bag_start_s
     from lidarcal.synthetic.oneboard import simulate_oneboard
     from lidarcal.synthetic.oneboard_bag import write_oneboard_bag
 

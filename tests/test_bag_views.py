@@ -33,7 +33,7 @@ from lidarcal.io.bag_views import (
 )
 from lidarcal.io.dataset import DatasetError
 from lidarcal.io.pairs import read_view_pairs
-from lidarcal.synthetic.bag import T0_NS
+from lidarcal.synthetic.bag import bag_start_s
 from lidarcal.synthetic.oneboard import simulate_oneboard
 from lidarcal.synthetic.oneboard_bag import true_ranges_mm, write_oneboard_bag
 
@@ -63,24 +63,13 @@ def bags(rig, tmp_path_factory) -> dict:
     return out
 
 
-def _bag_start_s(bag: Path) -> float:
-    """The bag's first message, s after the simulated recording's zero."""
-    from lidarcal.io.bag import open_bag
-
-    r = open_bag(bag)
-    try:
-        return (r.start_time - T0_NS) * 1e-9
-    finally:
-        r.close()
-
-
 def assert_views_are_the_holds(folder: Path, bag: Path, holds, rig, n_scans_min: int = 30):
     """One view per hold, its frame inside the hold, its scan the hold's true ranges within
     the noise of a per-beam median of its scans."""
     meta = json.loads((folder / "views.json").read_text())
     pairs = read_view_pairs(folder)
     assert len(pairs) == len(meta["views"]) == len(holds)
-    t0 = _bag_start_s(bag)
+    t0 = bag_start_s(bag)
     sigma = rig.range_noise_mm
     for pair, v, hold in zip(pairs, meta["views"], holds):
         assert pair.name == v["name"] and v["name"].startswith(f"view_{hold.index:03d}_t")
@@ -262,7 +251,7 @@ def test_a_drifting_hold_is_not_a_view(drift_mm, tmp_path):
     bag = tmp_path / "drift.bag"
     holds = write_oneboard_bag(rig, bag, seed=12, drift_mm=drift_mm, drift_holds=[1, 3, 5])
     res = import_views(bag, tmp_path / "v")
-    t0 = _bag_start_s(bag)
+    t0 = bag_start_s(bag)
     inside = [[i for i, h in enumerate(holds) if h.t_start_s - 0.03 <= v.t_start_s + t0
                and v.t_end_s + t0 <= h.t_end_s + 0.03] for v in res.views]
     assert inside == [[0], [2], [4]], (inside, res.warnings)

@@ -39,6 +39,18 @@ from ..io.dataset import load_dataset, read_scan, read_sweep
 T0_NS = 1_700_000_000 * 1_000_000_000  # the recording's wall-clock start
 
 
+def bag_start_s(bag: Path) -> float:
+    """A simulated bag's first message, s after the recording's zero (``T0_NS``): the offset
+    between the bag's clock and the simulator's truth times."""
+    from ..io.bag_read import open_bag
+
+    r = open_bag(bag)
+    try:
+        return (r.start_time - T0_NS) * 1e-9
+    finally:
+        r.close()
+
+
 @dataclass(frozen=True)
 class _Stop:
     psi: float
