@@ -144,8 +144,8 @@ def tapas():
 
 
 def test_real_views_all_used_with_millimetre_residuals(tapas):
-    # measured: all 7 views, point-to-plane RMS 4.24 mm (3.8-4.7 per view) for a range noise
-    # about lines of 3.7-4.3 mm
+    # measured: all 7 views, point-to-plane RMS 4.21 mm (3.8-4.8 per view) for a range noise
+    # about lines of 3.7-4.3 mm (4.26 mm with the margin assumed: the stand's returns kept)
     assert all(tapas.used)
     assert tapas.total_rms_mm < 5.0
     assert max(tapas.rms_mm) < 5.5
@@ -232,11 +232,15 @@ def test_real_views_in_a_flat_bent_valley_name_it(tapas):
     # 147 mm / 20 deg from the 7-view pose, 20 sigma of the linearised covariance (measured), and
     # the fit gave 9-18 mm, 1.3-1.5 deg sigmas silently; 10 sigma along its weakest direction the
     # cost rises by 3 % of the quadratic prediction (47-140 % for fits that predict held-out
-    # boards), so that direction is named and the sigmas are null
+    # boards), so that direction is named and the sigmas are null. With the board's margins
+    # measured (the stand's returns beyond the board's edge dropped, 01 and 02) the restarts find
+    # a second valley 20 deg away that fits as well (robust chi-square 1489 against 1482), and
+    # that names the direction first (the pose is 148 mm off either way, measured)
     import copy
 
     res = calibrate_planes([copy.copy(tapas.views[k]) for k in (1, 2, 3, 4)])
-    assert any("far flatter than its curvature says" in w for w in res.warnings)
+    assert any("far flatter than its curvature says" in w or
+               "a second pose fits the views about as well" in w for w in res.warnings)
     assert res.uncertainty.undetermined
     assert all(s is None for s in res.uncertainty.rotation_deg)
 

@@ -231,15 +231,16 @@ def build_oneboard_source(res, board: BoardSpec, folder: Path, name: str, figure
 def write_oneboard_report(folder: str | os.PathLike, out_pdf: str | os.PathLike,
                           camera_json: str | os.PathLike, board: BoardSpec,
                           calibration: str | os.PathLike | None = None,
-                          command: str | None = None) -> Path:
-    """Calibrate the view pairs in ``folder`` (``lidarcal planes``) and write the report to
-    ``out_pdf``; ``calibration``: a stored ``extrinsics.json`` to score on these views too."""
+                          command: str | None = None, assumed_margin: bool = False) -> Path:
+    """Calibrate the view pairs in ``folder`` (``lidarcal planes``, ``assumed_margin`` as there)
+    and write the report to ``out_pdf``; ``calibration``: a stored ``extrinsics.json`` to score on
+    these views too."""
     from ..planes import run_planes
 
     stored = None
     if calibration is not None:
         stored = (Path(calibration), *read_extrinsics(calibration))
-    res = run_planes(folder, camera_json, board)
+    res = run_planes(folder, camera_json, board, assumed_margin=assumed_margin)
     work = Path(tempfile.mkdtemp(prefix="lidarcal_report_"))
     try:
         import matplotlib
