@@ -678,6 +678,11 @@ def _cmd_planes(a: argparse.Namespace) -> int:
     print("T_mm =", np.array2string(res.T, precision=2, suppress_small=True))
     print(f"1-sigma rotation deg (x, y, z): {', '.join(fmt(v) for v in u.rotation_deg)}; "
           f"translation mm: {', '.join(fmt(v) for v in u.translation_mm)}")
+    bm = res.board_margins
+    if bm is not None:
+        print("board margins beyond the pattern (mm): " + ", ".join(
+            f"{a} {bm[f'{a}_mm']:.1f} +- {bm[f'sigma_{a}_mm']:.1f}" if bm[f"{a}_mm"] is not None
+            else f"{a} {bm['assumed_mm']:g} assumed (not measured)" for a in "uv"))
     print(f"wrote {path}")
     return 0
 

@@ -16,10 +16,10 @@ which is linear in the nine entries of ``H``. Steps:
 2. straight segments of each scan (:func:`lidarcal.scan_segments.line_segments`, the V
    pipeline's segmenter, with the noise about lines of :func:`local_line_noise`: quantised
    and repeated ranges allowed for; a segment longer than the board replaced by its board piece
-   and every gated run cut at the board's edges where a wall runs on in line with it,
-   :mod:`lidarcal.planes_wall`) and the board segment chosen by consensus: rigid hypotheses
-   from the linear solution of five random views, every view's candidates scored
-   against the board plane they predict (:func:`select_board_segments`);
+   and every gated run cut at the board's edges, :mod:`lidarcal.planes_wall`, its margins
+   measured in the photos, :mod:`lidarcal.board_margin`) and the board segment chosen by
+   consensus: rigid hypotheses from the linear solution of five random views, every view's
+   candidates scored against the board plane they predict (:func:`select_board_segments`);
 3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
    ``R`` the nearest rotation to ``[h1 h2 h1 x h2]``, ``T`` by least squares with
    ``R`` fixed);
@@ -756,7 +756,6 @@ def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
         n = sum(v.board is not None and im is not None for v, im in zip(views, photos))
         record = (no_margins_record(board, n) if m is None else
                   m.record(board.inner_corners, float(pattern_extent(board)[2]), n))
-    del photos
     res = calibrate_planes(views, seed=seed, limit_mm=limit_mm, where=folder)
     res.board_margins = record
     res.camera = cam  # type: ignore[attr-defined]

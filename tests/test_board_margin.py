@@ -105,7 +105,11 @@ def _planes_cli(folder: Path, out: Path, *extra: str) -> dict:
     r = subprocess.run([sys.executable, "-m", "lidarcal", "planes", str(folder), "--camera",
                         str(folder / "camera.json"), "--out", str(out), "--no-figures", *extra], capture_output=True, text=True, check=False)
     assert r.returncode == 0, r.stderr
-    return json.loads((out / "extrinsics.json").read_text())
+    doc = json.loads((out / "extrinsics.json").read_text())
+    bm = doc["board_margins"]  # said on stdout too
+    assert (bm is None) == ("board margins" not in r.stdout), r.stdout
+    assert bm is None or f"u {bm['u_mm']:.1f} +- {bm['sigma_u_mm']:.1f}" in r.stdout, r.stdout
+    return doc
 
 
 def test_cli_planes_measures_the_real_board_margins_and_drops_the_stand(tmp_path):

@@ -466,19 +466,21 @@ def test_a_wall_three_noise_sigmas_behind_the_board_is_cut_by_the_three_line_tes
 def test_real_board_two_noise_sigmas_in_front_of_a_wall_is_cut_out_or_named(tapas):
     # the real views with a wall 10 mm behind the board (with the view's own 3.7-4.3 mm noise)
     # and 3 mm range noise added to board and wall: ~5 mm in all, a 2-sigma step at each edge.
-    # Measured: 7/7 views, the pose within 1.12 of the unperturbed fit's sigmas; views 00, 01,
-    # 04 cut at the board's edges (93-99 % of its returns kept, no wall return); 02, 03, 05, 06
-    # named (no step marks an edge within the board's margin); the bound is 2 sigma
+    # With the margin assumed (300 mm) views 02, 03, 05, 06 were named (no step marks an edge
+    # within it) and the pose 1.12 sigma off. With the board's margins measured in the photos the
+    # edges are pinned: measured 7/7 views, none named, 97-99 % of each board's returns kept (03:
+    # 82 % when they had to be one run at the gate, two returns at a black-white edge split it),
+    # the pose within 0.15 of the unperturbed fit's sigmas; the bounds are 95 % and 1 sigma
     from lidarcal.degeneracy import pose_difference
 
+    assert all(v.board.grow_mm is not None for v in tapas.views)  # the margins measured
     res = calibrate_planes([_wall_behind(v, 10.0, 3.0, seed=k) for k, v in enumerate(tapas.views)])
     assert all(res.used)
     named = {w[:2] for w in res.warnings if "cannot be told from the surface behind it" in w}
-    assert len(named) < len(res.views)
-    for v, w in zip(tapas.views, res.views):
-        if w.name not in named:  # cut out: the board's returns, none of the wall's
-            assert len(np.intersect1d(v.beams, w.beams)) > 0.9 * len(v.beams)
-            assert np.all((w.beams >= v.beams.min() - 2) & (w.beams <= v.beams.max() + 2))
+    assert not named, named
+    for v, w in zip(tapas.views, res.views):  # cut out: the board's returns, none of the wall's
+        assert len(np.intersect1d(v.beams, w.beams)) > 0.95 * len(v.beams), w.name
+        assert np.all((w.beams >= v.beams.min() - 2) & (w.beams <= v.beams.max() + 2))
     d6 = pose_difference(res.R, res.T, tapas.R, tapas.T)
     sd = np.sqrt(np.diag(tapas.uncertainty.covariance))
-    assert np.all(np.abs(d6) <= 2.0 * sd), np.abs(d6) / sd
+    assert np.all(np.abs(d6) <= 1.0 * sd), np.abs(d6) / sd

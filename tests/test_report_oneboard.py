@@ -72,6 +72,9 @@ def test_report_numbers_are_those_of_extrinsics_json(tapas, tmp_path):
     held, inside, ratio = map(float, m.group(2, 3, 4))
     assert inside <= held <= HELD_OUT_RATIO * inside and ratio <= HELD_OUT_RATIO
     assert "view-level chi2" in src  # the real views disagree beyond the noise: the warning is shown
+    bm = doc["board_margins"]  # the board's margins measured in the photos, as written
+    assert (f"{bm['u_mm']:.1f} +- {bm['sigma_u_mm']:.1f} (measured, {bm['views_u']} edges)"
+            in src.replace("\u200b", ""))
 
 
 def test_a_stored_calibration_is_scored_on_other_views(rendered, tmp_path):

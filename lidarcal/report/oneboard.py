@@ -99,6 +99,17 @@ def _sigma_text(values) -> str:
     return "(" + ", ".join("undetermined" if v is None else fnum(v, 3) for v in values) + ")"
 
 
+def _margin_text(bm: dict | None) -> str:
+    """The ``board_margins`` of extrinsics.json in words: measured margins with their sigma, or
+    the margin assumed (where not measured, or ``--assumed-margin``)."""
+    if bm is None:
+        return "assumed (--assumed-margin): half the pattern's shorter side"
+    ax = [f"{bm[f'{a}_mm']:.1f} +- {bm[f'sigma_{a}_mm']:.1f} (measured, {bm[f'views_{a}']} edges)"
+          if bm[f"{a}_mm"] is not None else f"{bm['assumed_mm']:g} (assumed: not measured)"
+          for a in "uv"]
+    return ", ".join(ax)
+
+
 def _summary(doc: dict, board: BoardSpec) -> str:
     used = sum(1 for v in doc["views"] if v["used"])
     sig = doc["sigma"]
@@ -113,6 +124,7 @@ def _summary(doc: dict, board: BoardSpec) -> str:
         ["point-to-plane RMS (mm)", fnum(doc["rms_mm"], 2)],
         ["noise scale (residuals / noise model)", fnum(doc["noise_scale"], 2)],
         ["view-level chi2 / dof", f"{fnum(doc['view_chi2']['chi2'], 1)} / {doc['view_chi2']['dof']}"],
+        ["board margin beyond the pattern (mm, u, v)", esc(_margin_text(doc.get("board_margins")))],
         ["linear start: rotation, translation off the refined",
          (f"{fnum(_rotation_deg(np.array(doc['R']), np.array(doc['linear']['R'])), 3)} deg, "
          f"{fnum(np.linalg.norm(np.subtract(doc['T_mm'], doc['linear']['T_mm'])), 1)} mm")],
