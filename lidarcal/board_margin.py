@@ -16,13 +16,18 @@ views agree within :data:`AGREE_MM` and the edge stands clear of the profile's n
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from .geometry import MAD_TO_SIGMA
 from .io.dataset import BoardSpec, CameraModel
+from .planes_wall import pattern_extent
+
+if TYPE_CHECKING:
+    from .planes import ViewData
 
 #: Board-plane resampling step (mm per pixel of the warped strips).
 STEP_MM = 1.0
@@ -58,6 +63,8 @@ class BoardMargins:
     #: exchanges left and right, so a side's name is not the same physical side in every view
     axis_margin_mm: dict[str, float | None] = None  # type: ignore[assignment]
     axis_sigma_mm: dict[str, float | None] = None  # type: ignore[assignment]
+    #: the pattern's inner corners as found in the first view (``u`` along the first number)
+    ref_corners: tuple[int, int] | None = None
 
     def grow_mm(self, assumed_mm: float, transposed: bool = False) -> np.ndarray | None:
         """Per board axis ``(u, v)`` the extent beyond the pattern in which the board's edge lies
@@ -75,6 +82,34 @@ class BoardMargins:
         three sigmas where accepted, else ``assumed_mm``."""
         m = self.margin_mm.get(side)
         return assumed_mm if m is None else m + 3.0 * float(self.sigma_mm[side])
+
+    def record(self, pattern: tuple[int, int], assumed_mm: float, photos: int) -> dict:
+        """The ``board_margins`` block of ``extrinsics.json`` (docs/dataset-format.md): per axis
+        of the pattern as given (``u`` along its first number of inner corners) the margin and
+        its sigma (mm, null where not measured), how many views' edges agree on it, the extent
+        beyond the pattern the scan's cut takes (mm), and ``fallback`` naming the axes that keep
+        the ``assumed_mm`` margin (null when both are measured)."""
+        swap = self.ref_corners is not None and tuple(self.ref_corners) != tuple(pattern)
+        ax = {"u": "v", "v": "u"} if swap else {"u": "u", "v": "v"}
+        sides = {"u": ("left", "right"), "v": ("top", "bottom")}
+        m, s = self.axis_margin_mm or {}, self.axis_sigma_mm or {}
+        out: dict = {"photos": int(photos), "assumed_mm": float(assumed_mm)}
+        for a in "uv":
+            b = ax[a]
+            mb = m.get(b)
+            seen = [e[x].margin_mm for e in self.per_view for x in sides[b]
+                    if x in e and e[x].contrast >= MIN_CONTRAST]
+            out[f"{a}_mm"] = mb
+            out[f"sigma_{a}_mm"] = s.get(b)
+            out[f"views_{a}"] = 0 if mb is None else int(np.sum(np.abs(np.array(seen) - mb)
+                                                                <= AGREE_MM))
+            out[f"grown_{a}_mm"] = float(assumed_mm if mb is None else round(mb + 3.0 * s[b], 2))
+        missing = [a for a in "uv" if out[f"{a}_mm"] is None]
+        out["fallback"] = None if not missing else (
+            f"margin along {' and '.join(missing)} not measured (fewer than three views' photos "
+            f"agree on the board's edge): the assumed {assumed_mm:g} mm (half the pattern's "
+            "shorter side) is used")
+        return out
 
     def to_dict(self) -> dict:
         return {"margin_mm": self.margin_mm, "sigma_mm": self.sigma_mm,
@@ -157,7 +192,8 @@ def side_edges(image: np.ndarray, camera: CameraModel, R: np.ndarray, T: np.ndar
     return out
 
 
-def combine_margins(per_view: list[dict[str, SideEdge]]) -> BoardMargins:
+def combine_margins(per_view: list[dict[str, SideEdge]],
+                    ref_corners: tuple[int, int] | None = None) -> BoardMargins:
     """The margin per side shared by the views (module docstring): median of the views' clear
     edges, 1.4826 MAD as its sigma (at least :data:`STEP_MM`); accepted when more than half of
     all views that see the side have a clear edge within :data:`AGREE_MM` of it."""
@@ -168,7 +204,7 @@ def combine_margins(per_view: list[dict[str, SideEdge]]) -> BoardMargins:
         seen = [e[side] for e in per_view for side in sides if side in e]
         margin[name], sigma[name] = _consensus(seen)
     return BoardMargins({s: margin[s] for s in SIDES}, {s: sigma[s] for s in SIDES}, per_view,
-                        {a: margin[a] for a in "uv"}, {a: sigma[a] for a in "uv"})
+                        {a: margin[a] for a in "uv"}, {a: sigma[a] for a in "uv"}, ref_corners)
 
 
 def _consensus(seen: list[SideEdge]) -> tuple[float | None, float | None]:
@@ -198,4 +234,33 @@ def measure_margins(images: list[np.ndarray], camera: CameraModel, poses: list[t
             swap = {"left": "top", "top": "left", "right": "bottom", "bottom": "right"}
             e = {swap[s]: x for s, x in e.items()}
         per_view.append(e)
-    return combine_margins(per_view)
+    return combine_margins(per_view, tuple(ref))
+
+
+def no_margins_record(pattern_board: BoardSpec, photos: int) -> dict:
+    """The ``board_margins`` block when fewer than three views have a photo with the board: nothing
+    measured, the assumed margin of :func:`lidarcal.planes_wall.pattern_extent` on both axes."""
+    m = BoardMargins(dict.fromkeys(SIDES), dict.fromkeys(SIDES), [], {"u": None, "v": None},
+                     {"u": None, "v": None})
+    return m.record(pattern_board.inner_corners, float(pattern_extent(pattern_board)[2]), photos)
+
+
+def apply_board_margins(views: list[ViewData], images: list, camera: CameraModel
+                        ) -> BoardMargins | None:
+    """The board's margins measured in the views' photos (:func:`measure_margins`) set on every
+    view's board (``BoardPlane.grow_mm``: the extent beyond the pattern in which the scan's cut,
+    :func:`lidarcal.planes_wall.cut_run`, looks for the board's edge; an axis not measured keeps
+    the assumed margin); returns the :class:`BoardMargins` (None if fewer than three views have a
+    board and a photo). Called by :func:`lidarcal.planes.run_planes` unless
+    ``assumed_margin``."""
+    have = [(v, im) for v, im in zip(views, images) if v.board is not None and im is not None]
+    if len(have) < 3:
+        return None
+    m = measure_margins([im for _, im in have], camera, [(v.board.R, v.board.T) for v, _ in have],
+                        [v.board.board for v, _ in have])
+    for v, _ in have:
+        grow = pattern_extent(v.board.board)[2]
+        g = m.grow_mm(grow, transposed=v.board.board.inner_corners != m.ref_corners)
+        if g is not None:
+            v.board = replace(v.board, grow_mm=g)
+    return m

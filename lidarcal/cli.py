@@ -271,6 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     _chessboard_options(s, "8x5", camera=True, default_from="FOLDER/board.json")
     s.add_argument("--out", type=Path, required=True, help="output folder for extrinsics.json")
     s.add_argument("--no-figures", action="store_true", help="skip OUT/projection_NAME.png")
+    _assumed_margin_option(s)
 
     s = sub.add_parser("overlay", help="draw a dataset position's scan on its image with a "
                                        "calibration")
@@ -294,6 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pairs folder only: inner corners (default: FOLDER/board.json)")
     s.add_argument("--square-mm", type=_positive, default=None,
                    help="pairs folder only: side of a square, mm (default: FOLDER/board.json)")
+    _assumed_margin_option(s, "pairs folder only: ")
 
     s = sub.add_parser("check", help="check a dataset before calibrating: detections per position, "
                                      "no fits; exit 0 usable, 1 problems, 2 unreadable")
@@ -602,7 +604,7 @@ def _cmd_report(a: argparse.Namespace) -> int:
     check_output(a.out, "file")
     command = " ".join(["lidarcal", *sys.argv[1:]])
     pairs_only = [f"--{k.replace('_', '-')}" for k in ("camera", "pattern", "square_mm")
-                  if getattr(a, k) is not None]
+                  if getattr(a, k) is not None] + (["--assumed-margin"] if a.assumed_margin else [])
     if a.camera is not None or input_kind(a.dataset) == "view-pairs":
         from .io.pairs import board_spec
         from .report.oneboard import write_oneboard_report
@@ -612,7 +614,8 @@ def _cmd_report(a: argparse.Namespace) -> int:
                                                "leave --measurements out")
         path = write_oneboard_report(a.dataset, a.out, a.camera or a.dataset / "camera.json",
                                      board_spec(a.dataset, a.pattern, a.square_mm),
-                                     calibration=a.calibration, command=command)
+                                     calibration=a.calibration, command=command,
+                                     assumed_margin=a.assumed_margin)
         print(f"wrote {path}")
         return 0
     if pairs_only:
@@ -647,6 +650,12 @@ def _cmd_workbook(a: argparse.Namespace) -> int:
     return 0
 
 
+def _assumed_margin_option(s: argparse.ArgumentParser, prefix: str = "") -> None:
+    s.add_argument("--assumed-margin", action="store_true",
+                   help=prefix + "do not measure the board's margins beyond its pattern in the "
+                        "photos; the scan's cut assumes half the pattern's shorter side")
+
+
 def _cmd_planes(a: argparse.Namespace) -> int:
     from .io.pairs import board_spec
     from .planes import run_planes, write_extrinsics
@@ -655,7 +664,8 @@ def _cmd_planes(a: argparse.Namespace) -> int:
     check_output(a.out, "folder")
     if a.square_mm is not None and a.square_mm <= 0:
         raise DatasetError(a.folder, f"--square-mm must be positive, got {a.square_mm:g}")
-    res = run_planes(a.folder, a.camera, board_spec(a.folder, a.pattern, a.square_mm))
+    res = run_planes(a.folder, a.camera, board_spec(a.folder, a.pattern, a.square_mm),
+                     assumed_margin=a.assumed_margin)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     if not a.no_figures:
@@ -668,6 +678,11 @@ def _cmd_planes(a: argparse.Namespace) -> int:
     print("T_mm =", np.array2string(res.T, precision=2, suppress_small=True))
     print(f"1-sigma rotation deg (x, y, z): {', '.join(fmt(v) for v in u.rotation_deg)}; "
           f"translation mm: {', '.join(fmt(v) for v in u.translation_mm)}")
+    bm = res.board_margins
+    if bm is not None:
+        print("board margins beyond the pattern (mm): " + ", ".join(
+            f"{a} {bm[f'{a}_mm']:.1f} +- {bm[f'sigma_{a}_mm']:.1f}" if bm[f"{a}_mm"] is not None
+            else f"{a} {bm['assumed_mm']:g} assumed (not measured)" for a in "uv"))
     print(f"wrote {path}")
     return 0
 

@@ -16,10 +16,10 @@ which is linear in the nine entries of ``H``. Steps:
 2. straight segments of each scan (:func:`lidarcal.scan_segments.line_segments`, the V
    pipeline's segmenter, with the noise about lines of :func:`local_line_noise`: quantised
    and repeated ranges allowed for; a segment longer than the board replaced by its board piece
-   and every gated run cut at the board's edges where a wall runs on in line with it,
-   :mod:`lidarcal.planes_wall`) and the board segment chosen by consensus: rigid hypotheses
-   from the linear solution of five random views, every view's candidates scored
-   against the board plane they predict (:func:`select_board_segments`);
+   and every gated run cut at the board's edges, :mod:`lidarcal.planes_wall`, its margins
+   measured in the photos, :mod:`lidarcal.board_margin`) and the board segment chosen by
+   consensus: rigid hypotheses from the linear solution of five random views, every view's
+   candidates scored against the board plane they predict (:func:`select_board_segments`);
 3. linear initialisation (:func:`linear_extrinsics`: ``H`` by least squares,
    ``R`` the nearest rotation to ``[h1 h2 h1 x h2]``, ``T`` by least squares with
    ``R`` fixed);
@@ -48,6 +48,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from .board_margin import apply_board_margins, no_margins_record
 from .degeneracy import (
     AMBIGUITY_CHI2,
     MIN_VIEWS,
@@ -382,6 +383,9 @@ class PlanesResult:
     warnings: list[str]
     R_linear: np.ndarray
     T_linear: np.ndarray
+    #: the board's margins measured in the photos (:meth:`lidarcal.board_margin.BoardMargins.record`;
+    #: None: not measured, the assumed margin)
+    board_margins: dict | None = None
 
     @property
     def total_rms_mm(self) -> float:
@@ -419,6 +423,7 @@ class PlanesResult:
             "view_chi2": dict(zip(("chi2", "dof"), view_level_chi2(
                 [v for v, u in zip(self.views, self.used) if u], self.R, self.T))),
             "linear": {"R": self.R_linear.tolist(), "T_mm": self.T_linear.tolist()},
+            "board_margins": self.board_margins,
         }
 
 
@@ -473,8 +478,10 @@ def _gate_view(v: ViewData, R: np.ndarray, T: np.ndarray, tol_mm: float,
     at three times ``tol_mm`` (a wall's returns gated at ``tol_mm`` are those its noise pulls
     nearer: their step would be biased low); where it is significant, the board's returns are
     those between the steps at that wider gate (a patch of the board read a few mm off, a dark
-    square, no longer breaks the run). Sets ``v.beside``: the share of the gated run beyond the
-    board that no significant step separates from it (then dropped)."""
+    square, no longer breaks the run); where it is not and the board's margin was measured
+    (``BoardPlane.grow_mm``), those between the edges found within ``tol_mm`` of the plane. Sets
+    ``v.beside``: the share of the gated run beyond the board that no significant step separates
+    from it (then dropped)."""
     inside = _beams_on_pattern(v, R, T)
     if len(inside) >= MIN_POINTS:  # the run the camera's board is on (not a wall piece beside it)
         seed_beams = inside
@@ -495,6 +502,12 @@ def _gate_view(v: ViewData, R: np.ndarray, T: np.ndarray, tol_mm: float,
             i, j = i + (i > 0), j - (j < len(wide))  # mixed returns at a cut edge
         return wide[i:j]
     keep = run[(run >= wide[i]) & (run <= wide[j - 1])]
+    if v.board.grow_mm is not None:
+        # the board's measured extent bounds its returns, so they need not be one run at
+        # ``tol_mm``: every return between the edges within ``tol_mm`` of the plane is the board's
+        # (two adjacent returns a few mm off at a black-white edge, with noise beyond the gate,
+        # split TAPAS view 03's run and left out 18 % of its board, scripts/margin_beams.py)
+        keep = wide[i:j][np.abs(v.board.plane.distance(X[i:j])) <= tol_mm]
     # those dropped beyond a measured margin are surely not the board (cut_run's share in doubt)
     v.beside = loose if v.board.grow_mm is not None else 1.0 - len(keep) / len(run)
     return keep
@@ -508,9 +521,11 @@ def plane_residuals_mm(view: ViewData, R: np.ndarray, T: np.ndarray) -> np.ndarr
     return view.board.plane.distance(X)
 
 
-def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int = MIN_POINTS
-                  ) -> list[ViewData]:
-    """Board plane (with covariance) and candidate scan segments of every view pair."""
+def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int = MIN_POINTS,
+                  photos: list | None = None) -> list[ViewData]:
+    """Board plane (with covariance) and candidate scan segments of every view pair; each view's
+    photo (None where it could not be read) is appended to ``photos`` if given (for
+    :func:`lidarcal.board_margin.apply_board_margins`)."""
     from .io.dataset import read_image
 
     views = []
@@ -534,30 +549,9 @@ def prepare_views(pairs, camera: CameraModel, board: BoardSpec, min_points: int 
             v.candidates = line_segments(pr.angle_deg, pr.range_mm, range_noise_mm=sig,
                                          min_points=min_points, steps=True)[0]
         views.append(v)
+        if photos is not None:
+            photos.append(img)
     return views
-
-
-def apply_board_margins(views: list[ViewData], images: list, camera: CameraModel):
-    """Opt-in (not yet called by :func:`prepare_views`: on the real TAPAS views with a wall
-    inserted 10 mm behind, view 03 keeps only 82 % of its board returns, unexplained): the
-    board's margins beyond its pattern measured in the views' photos
-    (:func:`lidarcal.board_margin.measure_margins`) set on every view's board
-    (``BoardPlane.grow_mm``, what the scan's gating takes for the board's extent); returns the
-    :class:`~lidarcal.board_margin.BoardMargins` (None if fewer than three views have a board)."""
-    from .board_margin import measure_margins
-
-    have = [(v, im) for v, im in zip(views, images) if v.board is not None and im is not None]
-    if len(have) < 3:
-        return None
-    m = measure_margins([im for _, im in have], camera, [(v.board.R, v.board.T) for v, _ in have],
-                        [v.board.board for v, _ in have])
-    ref = have[0][0].board.board.inner_corners
-    for v, _ in have:
-        grow = pattern_extent(v.board.board)[2]
-        g = m.grow_mm(grow, transposed=v.board.board.inner_corners != ref)
-        if g is not None:
-            v.board = replace(v.board, grow_mm=g)
-    return m
 
 
 def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UNDETERMINED_MM,
@@ -735,8 +729,13 @@ def calibrate_planes(views: list[ViewData], seed: int = 0, limit_mm: float = UND
 
 
 def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
-               seed: int = 0, limit_mm: float = UNDETERMINED_MM) -> PlanesResult:
-    """``lidarcal planes``: read the view pairs and the camera, calibrate."""
+               seed: int = 0, limit_mm: float = UNDETERMINED_MM,
+               assumed_margin: bool = False) -> PlanesResult:
+    """``lidarcal planes``: read the view pairs and the camera, measure the board's margins in
+    the photos (:func:`lidarcal.board_margin.apply_board_margins`; ``assumed_margin``: keep the
+    assumed half of the pattern's shorter side, as before the measurement), calibrate.
+    ``PlanesResult.board_margins`` is the ``extrinsics.json`` block (None with
+    ``assumed_margin``)."""
     from .io.dataset import parse_camera, read_json_object
     from .io.pairs import read_view_pairs
 
@@ -744,13 +743,21 @@ def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
     cam = parse_camera(read_json_object(cpath, "missing camera file; expected JSON with K, dist, "
                                                "image_size", "fix it"), cpath)
     pairs = read_view_pairs(folder)
-    views = prepare_views(pairs, cam, board)
+    photos: list = []
+    views = prepare_views(pairs, cam, board, photos=photos)
     sizes = {v.note.partition(": image is ")[2].partition(",")[0] for v in views}
     if all(": image is " in v.note for v in views) and len(sizes) == 1:
         raise DatasetError(cpath, f"image_size is {cam.image_size[0]}x{cam.image_size[1]} but "
                                   f"every photo is {sizes.pop()}; give the camera.json of the "
                                   "camera that took them")
+    record = None
+    if not assumed_margin:
+        m = apply_board_margins(views, photos, cam)
+        n = sum(v.board is not None and im is not None for v, im in zip(views, photos))
+        record = (no_margins_record(board, n) if m is None else
+                  m.record(board.inner_corners, float(pattern_extent(board)[2]), n))
     res = calibrate_planes(views, seed=seed, limit_mm=limit_mm, where=folder)
+    res.board_margins = record
     res.camera = cam  # type: ignore[attr-defined]
     res.pairs = pairs  # type: ignore[attr-defined]
     return res

@@ -5,9 +5,10 @@ Simulated one-board views (:func:`lidarcal.synthetic.oneboard.simulate_oneboard`
 truth; the real TAPAS views (data/real_tapas) with a wall inserted beside the board (the board's
 line shifted back by the step, 120 beams each side, as scripts/real_robustness.py, with the view's
 own noise about lines, 3.7-4.3 mm) and Gaussian range noise added to board and wall (integer mm)
-are scored against the unperturbed fit. The board's margins are measured in the photos
-(:mod:`lidarcal.board_margin`; the simulated photos rendered) unless ``--assumed-margin`` (the
-margin assumed, half the pattern's shorter side, as before the measurement). Prints,
+are scored against the unperturbed fit of the same method. The board's margins are measured in
+the photos (:mod:`lidarcal.board_margin`, as ``lidarcal planes`` does; the simulated photos
+rendered) unless ``--assumed-margin`` (the margin assumed, half the pattern's shorter side, as
+before the measurement). Prints,
 per case: views used, the translation and rotation error, the largest error in units of the
 reported (or unperturbed) 1-sigma, and whether the "cannot be told" warning was given.
 
@@ -74,13 +75,9 @@ def simulated(seeds, walls, noises, assumed: bool) -> None:
 
 
 def real(walls, noises, assumed: bool) -> None:
+    # the reference: the unperturbed fit of the same method (its margins carried by the views)
     full = run_planes(ROOT / "data/real_tapas", ROOT / "data/real_tapas/camera.json",
-                      BoardSpec((8, 5), 100.0))
-    if not assumed:  # the margins measured in the photos (the reference fit is without them)
-        import cv2
-
-        apply_board_margins(full.views, [cv2.imread(str(p.image_path), cv2.IMREAD_GRAYSCALE)
-                                         for p in full.pairs], full.camera)
+                      BoardSpec((8, 5), 100.0), assumed_margin=assumed)
     print(f"TAPAS grown extent per axis (u, v): {full.views[0].board.grow_mm} mm")
     sd = np.sqrt(np.diag(full.uncertainty.covariance))
     print(f"TAPAS unperturbed: {sum(full.used)} views, sigma T {np.round(sd[3:], 2)} mm")

@@ -144,14 +144,15 @@ def tapas():
 
 
 def test_real_views_all_used_with_millimetre_residuals(tapas):
-    # measured: all 7 views, point-to-plane RMS 4.24 mm (3.8-4.7 per view) for a range noise
-    # about lines of 3.7-4.3 mm
+    # measured: all 7 views, point-to-plane RMS 4.21 mm (3.8-4.8 per view) for a range noise
+    # about lines of 3.7-4.3 mm (4.26 mm with the margin assumed: the stand's returns kept)
     assert all(tapas.used)
     assert tapas.total_rms_mm < 5.0
     assert max(tapas.rms_mm) < 5.5
     assert not tapas.uncertainty.undetermined
-    # the views disagree beyond the corner and range noise (view-level chi2 105 for 8 dof): the
-    # sigmas are scaled by 3.6 and it says so; measured 2.5-7.1 mm and 0.43-0.62 deg
+    # the views disagree beyond the corner and range noise (view-level chi2 123 for 8 dof, with
+    # the margin measured or assumed): the sigmas are scaled by 3.9 and it says so; measured
+    # 2.6-7.8 mm and 0.48-0.69 deg (2.55-7.56 mm and 0.46-0.66 deg with the margin assumed)
     assert max(tapas.uncertainty.translation_mm) < 10 and max(tapas.uncertainty.rotation_deg) < 1
     assert any("views disagree" in w for w in tapas.warnings)
     # the board segment in each scan is the board: ~250-300 returns, not the wall or the stand
@@ -159,7 +160,7 @@ def test_real_views_all_used_with_millimetre_residuals(tapas):
 
 
 def test_real_leave_one_out_predicts_the_held_out_boards(tapas):
-    # measured held-out RMS: 3.9-5.6 mm (mean square 4.7 mm) against 3.8-4.7 mm in sample;
+    # measured held-out RMS: 3.96-5.82 mm (mean square 4.74 mm) against 3.8-4.8 mm in sample;
     # two views here to keep the test short: the worst one (00) and the most tilted one (05)
     loo = leave_one_out(tapas.views, tapas, names=["00", "05"])
     by = {r["name"]: r for r in loo}
@@ -232,18 +233,22 @@ def test_real_views_in_a_flat_bent_valley_name_it(tapas):
     # 147 mm / 20 deg from the 7-view pose, 20 sigma of the linearised covariance (measured), and
     # the fit gave 9-18 mm, 1.3-1.5 deg sigmas silently; 10 sigma along its weakest direction the
     # cost rises by 3 % of the quadratic prediction (47-140 % for fits that predict held-out
-    # boards), so that direction is named and the sigmas are null
+    # boards), so that direction is named and the sigmas are null. With the board's margins
+    # measured (the stand's returns beyond the board's edge dropped, 01 and 02) the restarts find
+    # a second valley 20 deg away that fits as well (robust chi-square 1489 against 1482), and
+    # that names the direction first (the pose is 148 mm off either way, measured)
     import copy
 
     res = calibrate_planes([copy.copy(tapas.views[k]) for k in (1, 2, 3, 4)])
-    assert any("far flatter than its curvature says" in w for w in res.warnings)
+    assert any("far flatter than its curvature says" in w or
+               "a second pose fits the views about as well" in w for w in res.warnings)
     assert res.uncertainty.undetermined
     assert all(s is None for s in res.uncertainty.rotation_deg)
 
 
 def test_real_board_returns_land_on_the_board_in_the_photo(tapas):
-    # measured: 83-90 % of each view's board returns project inside the pattern's outline one
-    # square beyond its outer corners (the physical board is wider still)
+    # measured: 87-91 % (83-90 % with the margin assumed) of each view's board returns project
+    # inside the pattern's outline one square beyond its outer corners (the board is wider still)
     for v in tapas.views:
         px, _, ok = project_returns(tapas.camera, tapas.R, tapas.T, v.angle_deg, v.range_mm)
         assert ok[v.beams].all()
@@ -462,19 +467,21 @@ def test_a_wall_three_noise_sigmas_behind_the_board_is_cut_by_the_three_line_tes
 def test_real_board_two_noise_sigmas_in_front_of_a_wall_is_cut_out_or_named(tapas):
     # the real views with a wall 10 mm behind the board (with the view's own 3.7-4.3 mm noise)
     # and 3 mm range noise added to board and wall: ~5 mm in all, a 2-sigma step at each edge.
-    # Measured: 7/7 views, the pose within 1.12 of the unperturbed fit's sigmas; views 00, 01,
-    # 04 cut at the board's edges (93-99 % of its returns kept, no wall return); 02, 03, 05, 06
-    # named (no step marks an edge within the board's margin); the bound is 2 sigma
+    # With the margin assumed (300 mm) views 02, 03, 05, 06 were named (no step marks an edge
+    # within it) and the pose 1.12 sigma off. With the board's margins measured in the photos the
+    # edges are pinned: measured 7/7 views, none named, 97-99 % of each board's returns kept (03:
+    # 82 % when they had to be one run at the gate, two returns at a black-white edge split it),
+    # the pose within 0.15 of the unperturbed fit's sigmas; the bounds are 95 % and 1 sigma
     from lidarcal.degeneracy import pose_difference
 
+    assert all(v.board.grow_mm is not None for v in tapas.views)  # the margins measured
     res = calibrate_planes([_wall_behind(v, 10.0, 3.0, seed=k) for k, v in enumerate(tapas.views)])
     assert all(res.used)
     named = {w[:2] for w in res.warnings if "cannot be told from the surface behind it" in w}
-    assert len(named) < len(res.views)
-    for v, w in zip(tapas.views, res.views):
-        if w.name not in named:  # cut out: the board's returns, none of the wall's
-            assert len(np.intersect1d(v.beams, w.beams)) > 0.9 * len(v.beams)
-            assert np.all((w.beams >= v.beams.min() - 2) & (w.beams <= v.beams.max() + 2))
+    assert not named, named
+    for v, w in zip(tapas.views, res.views):  # cut out: the board's returns, none of the wall's
+        assert len(np.intersect1d(v.beams, w.beams)) > 0.95 * len(v.beams), w.name
+        assert np.all((w.beams >= v.beams.min() - 2) & (w.beams <= v.beams.max() + 2))
     d6 = pose_difference(res.R, res.T, tapas.R, tapas.T)
     sd = np.sqrt(np.diag(tapas.uncertainty.covariance))
-    assert np.all(np.abs(d6) <= 2.0 * sd), np.abs(d6) / sd
+    assert np.all(np.abs(d6) <= 1.0 * sd), np.abs(d6) / sd

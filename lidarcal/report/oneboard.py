@@ -99,6 +99,17 @@ def _sigma_text(values) -> str:
     return "(" + ", ".join("undetermined" if v is None else fnum(v, 3) for v in values) + ")"
 
 
+def _margin_text(bm: dict | None) -> str:
+    """The ``board_margins`` of extrinsics.json in words: measured margins with their sigma, or
+    the margin assumed (where not measured, or ``--assumed-margin``)."""
+    if bm is None:
+        return "assumed (--assumed-margin): half the pattern's shorter side"
+    ax = [f"{bm[f'{a}_mm']:.1f} +- {bm[f'sigma_{a}_mm']:.1f} (measured, {bm[f'views_{a}']} edges)"
+          if bm[f"{a}_mm"] is not None else f"{bm['assumed_mm']:g} (assumed: not measured)"
+          for a in "uv"]
+    return ", ".join(ax)
+
+
 def _summary(doc: dict, board: BoardSpec) -> str:
     used = sum(1 for v in doc["views"] if v["used"])
     sig = doc["sigma"]
@@ -113,6 +124,7 @@ def _summary(doc: dict, board: BoardSpec) -> str:
         ["point-to-plane RMS (mm)", fnum(doc["rms_mm"], 2)],
         ["noise scale (residuals / noise model)", fnum(doc["noise_scale"], 2)],
         ["view-level chi2 / dof", f"{fnum(doc['view_chi2']['chi2'], 1)} / {doc['view_chi2']['dof']}"],
+        ["board margin beyond the pattern (mm, u, v)", esc(_margin_text(doc.get("board_margins")))],
         ["linear start: rotation, translation off the refined",
          (f"{fnum(_rotation_deg(np.array(doc['R']), np.array(doc['linear']['R'])), 3)} deg, "
          f"{fnum(np.linalg.norm(np.subtract(doc['T_mm'], doc['linear']['T_mm'])), 1)} mm")],
@@ -231,15 +243,16 @@ def build_oneboard_source(res, board: BoardSpec, folder: Path, name: str, figure
 def write_oneboard_report(folder: str | os.PathLike, out_pdf: str | os.PathLike,
                           camera_json: str | os.PathLike, board: BoardSpec,
                           calibration: str | os.PathLike | None = None,
-                          command: str | None = None) -> Path:
-    """Calibrate the view pairs in ``folder`` (``lidarcal planes``) and write the report to
-    ``out_pdf``; ``calibration``: a stored ``extrinsics.json`` to score on these views too."""
+                          command: str | None = None, assumed_margin: bool = False) -> Path:
+    """Calibrate the view pairs in ``folder`` (``lidarcal planes``, ``assumed_margin`` as there)
+    and write the report to ``out_pdf``; ``calibration``: a stored ``extrinsics.json`` to score on
+    these views too."""
     from ..planes import run_planes
 
     stored = None
     if calibration is not None:
         stored = (Path(calibration), *read_extrinsics(calibration))
-    res = run_planes(folder, camera_json, board)
+    res = run_planes(folder, camera_json, board, assumed_margin=assumed_margin)
     work = Path(tempfile.mkdtemp(prefix="lidarcal_report_"))
     try:
         import matplotlib
