@@ -177,7 +177,8 @@ def _thumbnail(image: np.ndarray, width: int = THUMB_WIDTH_PX) -> tuple[np.ndarr
 
 def _check_position(pos: Position, camera: CameraModel | None, boards, lidar, rho) -> PositionCheck:
     """Section 1's detections at one position (no fit of a pose): stripes, then the scan's V."""
-    from .scan import split_v
+    from .board import inner_diagonal_mm
+    from .scan import split_v, v_segment_limit_mm
     from .stripe import board_stripe_centres, camera_lines_from_centres
 
     out = PositionCheck(pos.index, pos.psi_deg, pos.stripe_image, pos.scan)
@@ -216,7 +217,9 @@ def _check_position(pos: Position, camera: CameraModel | None, boards, lidar, rh
         out.problems.append(str(e))
         return out
     try:
-        seg = split_v(ang, rng, alpha=alpha)
+        limit = None if boards is None else v_segment_limit_mm(
+            [inner_diagonal_mm(camera, b) for b in boards])
+        seg = split_v(ang, rng, alpha=alpha, max_segment_mm=limit)
         out.v_points = (len(seg.index1), len(seg.index2))
         out.v_opening_deg = float(seg.opening_deg)
     except ValueError as e:

@@ -485,7 +485,7 @@ def render_stripe(rig: Rig, surf: Surfaces, shape, ss, rng, psi_true, gain: floa
 
 
 def beam_angles(v: Variant) -> np.ndarray:
-    n = int(round(v.lidar_fov_deg / v.lidar_step_deg))
+    n = round(v.lidar_fov_deg / v.lidar_step_deg)
     return -v.lidar_fov_deg / 2 + v.lidar_step_deg * np.arange(n + 1)
 
 
@@ -664,11 +664,22 @@ def render_intrinsics(rig: Rig, d: np.ndarray, shape, ss, rng, out: Path, n_view
 # ----------------------------------------------------------------- dataset
 
 
-def generate(out: Path, variant: str, seed: int, sweeps: bool = True,
-             n_positions: int | None = None) -> dict:
-    v = VARIANTS[variant]
+def make_variant(variant: str, n_positions: int | None = None,
+                 overrides: dict | None = None) -> Variant:
+    """A named variant, with its count of positions and any field overridden."""
+    fields = dict(VARIANTS[variant].__dict__)
     if n_positions:
-        v = Variant(**{**v.__dict__, "n_positions": n_positions})
+        fields["n_positions"] = n_positions
+    for k, val in (overrides or {}).items():
+        if k not in fields:
+            raise KeyError(f"no variant field {k!r}")
+        fields[k] = type(fields[k])(val) if not isinstance(fields[k], tuple) else tuple(val)
+    return Variant(**fields)
+
+
+def generate(out: Path, variant: str, seed: int, sweeps: bool = True,
+             n_positions: int | None = None, overrides: dict | None = None) -> dict:
+    v = make_variant(variant, n_positions, overrides)
     rng = np.random.default_rng(10_000 + seed)
     rig = build_rig(v, seed)
     plan_positions(rig, rng)
@@ -854,18 +865,18 @@ def compare(cal: dict, truth: dict) -> dict:
 
 def run(cmd: list[str]) -> tuple[int, str, float]:
     t0 = time.time()
-    p = subprocess.run(cmd, capture_output=True, text=True)
+    p = subprocess.run(cmd, capture_output=True, text=True, check=False)
     return p.returncode, (p.stdout + p.stderr), time.time() - t0
 
 
 def evaluate(work: Path, variants: list[str], seeds: list[int], lidarcal: str,
-             n_positions: int | None) -> list[dict]:
+             n_positions: int | None, overrides: dict | None = None) -> list[dict]:
     rows = []
     for var in variants:
         for seed in seeds:
             ds = work / f"{var}_s{seed}"
             t0 = time.time()
-            truth = generate(ds, var, seed, n_positions=n_positions)
+            truth = generate(ds, var, seed, n_positions=n_positions, overrides=overrides)
             t_gen = time.time() - t0
             rc_check, out_check, t_check = run([lidarcal, "check", str(ds), "--sheet",
                                                 str(work / f"{var}_s{seed}-check.png")])
@@ -873,13 +884,14 @@ def evaluate(work: Path, variants: list[str], seeds: list[int], lidarcal: str,
             rc, out_cal, t_cal = run([lidarcal, "calibrate", str(ds), "--out", str(out),
                                       "--no-progress"])
             row = {"variant": var, "seed": seed, "gen_s": round(t_gen, 1), "check_rc": rc_check,
-                   "calibrate_rc": rc, "calibrate_s": round(t_cal, 1)}
+                   "check_s": round(t_check, 1), "calibrate_rc": rc, "calibrate_s": round(t_cal, 1)}
             if rc == 0:
                 cal = json.loads((out / "calibration.json").read_text())
                 row.update(compare(cal, truth))
                 rc_m, out_m, t_m = run([lidarcal, "measure", str(ds), "--calibration",
                                         str(out / "calibration.json"), "--out", str(out)])
                 row["measure_rc"] = rc_m
+                row["measure_s"] = round(t_m, 1)
                 if rc_m == 0:
                     mj = json.loads((out / "measurements.json").read_text())
                     errs = [(m["diameter_mm"] - t["diameter_mm"], m["diameter_sigma_mm"])
@@ -904,20 +916,28 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--positions", type=int, default=None, help="override the variant's count")
     ap.add_argument("--no-sweeps", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a variant field, e.g. --set v_angle_deg=100")
     ap.add_argument("--evaluate", type=Path, default=None, metavar="WORKDIR")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--seeds", default="1,2")
     ap.add_argument("--lidarcal", default=str(Path(sys.executable).parent / "lidarcal"))
     a = ap.parse_args(argv)
+    overrides = {}
+    for kv in a.set:
+        k, _, val = kv.partition("=")
+        overrides[k] = [float(x) for x in val.split(",")] if "," in val else (
+            val if k in ("echo", "colour", "no_return", "name") else float(val))
     if a.evaluate:
         a.evaluate.mkdir(parents=True, exist_ok=True)
         rows = evaluate(a.evaluate, a.variants.split(","), [int(s) for s in a.seeds.split(",")],
-                        a.lidarcal, a.positions)
+                        a.lidarcal, a.positions, overrides)
         (a.evaluate / "summary.json").write_text(json.dumps(rows, indent=1))
         return 0
     if a.out is None:
         ap.error("give OUT or --evaluate WORKDIR")
-    generate(a.out, a.variant, a.seed, sweeps=not a.no_sweeps, n_positions=a.positions)
+    generate(a.out, a.variant, a.seed, sweeps=not a.no_sweeps, n_positions=a.positions,
+             overrides=overrides)
     return 0
 
 
