@@ -236,6 +236,7 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     from .calibration_checks import setup_warnings
     from .pipeline import (
         MIN_POSITIONS,
+        _unwrapped,
         blur_warning,
         camera_for,
         find_boards,
@@ -277,13 +278,17 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     res.positions = [_check_position(p, camera, boards, ds.lidar, rho) for p in todo]
 
     s = summarise_dataset(ds)
-    psi = np.sort([p.psi_deg for p in ds.positions])
+    # the angles as calibrate reads them: one sweep where a controller wraps at 360 deg
+    swept, wrap_notes = _unwrapped(ds, list(ds.positions))
+    res.notes += wrap_notes
+    psi_of = {p.index: p.psi_deg for p in swept}
+    psi = np.sort(list(psi_of.values()))
     steps = np.diff(psi)
     if len(steps) and steps.max() > 1.5 * steps.min():
         res.notes.append(f"the angle steps vary from {steps.min():g} to {steps.max():g} deg "
                          f"(median {s.psi_step_deg:g})")
     good = [p for p in res.positions if p.detected]
-    res.notes += setup_warnings(np.array([p.psi_deg for p in good]) if good else psi, good)
+    res.notes += setup_warnings(np.array([psi_of[p.index] for p in good]) if good else psi, good)
     if boards is not None:
         res.notes += small_square_warnings(boards, ds.v_board, ds.board_image)
     if boards is not None and len(good) < MIN_POSITIONS:
