@@ -345,7 +345,12 @@ def pixel_rays(K, dist, size, ss):
     return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32), (h * ss, w * ss)
 
 
-def downsample(img: np.ndarray, ss: int) -> np.ndarray:
+def downsample(img: np.ndarray, ss: int, blur_px: float = 0.0) -> np.ndarray:
+    """The pixels' values: the lens' Gaussian blur applied to the sub-pixel samples (so that
+    edges are anti-aliased before sampling), then each pixel's ss x ss samples averaged
+    (its area)."""
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur_px * ss)
     H, W = img.shape
     return img.reshape(H // ss, ss, W // ss, ss).mean(axis=(1, 3))
 
@@ -400,9 +405,7 @@ def cast_scene(rig: Rig, d: np.ndarray, boards=True) -> Surfaces:
 
 
 def sensor(linear: np.ndarray, rng, v: Variant, gain_e=3.0, read_dn=1.2) -> np.ndarray:
-    """Blur, shot noise, read noise, gamma, 8-bit quantisation."""
-    if v.blur_px > 0:
-        linear = cv2.GaussianBlur(linear.astype(np.float32), (0, 0), v.blur_px)
+    """Shot noise, read noise, gamma, 8-bit quantisation (the blur is in :func:`downsample`)."""
     e = rng.poisson(np.clip(linear, 0, None) * gain_e) / gain_e
     e = e + rng.normal(0, read_dn, e.shape)
     e = 255.0 * np.clip(e / 255.0, 0, None) ** v.gamma
@@ -412,7 +415,7 @@ def sensor(linear: np.ndarray, rng, v: Variant, gain_e=3.0, read_dn=1.2) -> np.n
 def render_lit(rig: Rig, surf: Surfaces, shape, ss, rng, level=205.0) -> np.ndarray:
     """The bright board image: Lambertian under a diffuse light near the camera."""
     shade = 0.55 + 0.45 * surf.cos_cam
-    img = downsample((level * surf.albedo * shade).reshape(shape), ss)
+    img = downsample((level * surf.albedo * shade).reshape(shape), ss, rig.variant.blur_px)
     return sensor(img, rng, rig.variant)
 
 
@@ -453,7 +456,7 @@ def stripe_linear(rig: Rig, surf: Surfaces, shape, ss, psi_true) -> np.ndarray:
         cos_in = np.abs(np.einsum("ij,ij->i", bd, surf.normal[idx]))
         # a fan of constant power per angle: irradiance ~ 1 / (range x sheet width)
         lin[idx] = surf.albedo[idx] * np.exp(-0.5 * (z / sig) ** 2) * cos_in / (sig * r)
-    return downsample(lin.reshape(shape), ss)
+    return downsample(lin.reshape(shape), ss, v.blur_px)
 
 
 def exposure(rig: Rig, surf: Surfaces, shape, ss, psi_true) -> float:
@@ -473,7 +476,8 @@ def render_stripe(rig: Rig, surf: Surfaces, shape, ss, rng, psi_true, gain: floa
     sp = cv2.GaussianBlur(sp, (0, 0), 1.5)
     sp *= v.speckle / max(sp.std(), 1e-9)
     img = img * np.clip(1 + sp, 0, None)
-    ambient = downsample((4.0 * surf.albedo * (0.5 + 0.5 * surf.cos_cam)).reshape(shape), ss)
+    ambient = downsample((4.0 * surf.albedo * (0.5 + 0.5 * surf.cos_cam)).reshape(shape), ss,
+                         v.blur_px)
     if v.colour == "gray":
         return sensor(img + ambient, rng, v)
     chans = [sensor(0.04 * img + ambient, rng, v), sensor(0.09 * img + ambient, rng, v),
@@ -655,7 +659,7 @@ def render_intrinsics(rig: Rig, d: np.ndarray, shape, ss, rng, out: Path, n_view
         hit = np.isfinite(t)
         alb = np.where(hit, np.where(b.black(a, bb), 0.05, 0.85), 0.25).astype(np.float32)
         cosv = np.where(hit, np.abs(d @ b.normal), 0.7)
-        lin = downsample((200.0 * alb * (0.6 + 0.4 * cosv)).reshape(shape), ss)
+        lin = downsample((200.0 * alb * (0.6 + 0.4 * cosv)).reshape(shape), ss, v.blur_px)
         cv2.imwrite(str(out / f"view_{made:02d}.png"), sensor(lin, rng, v))
         made += 1
     return made
