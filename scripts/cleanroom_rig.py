@@ -515,7 +515,8 @@ def scan(rig: Rig, psi_true: float, rng, disc: Disc | None = None, with_board=Tr
             t, aa, bb = b.hit(T, d)
             ts.append(t if with_board else np.full(nb, np.inf))
             blk.append(b.black(aa, bb))
-        ts.append(rig.post.hit(T, d))
+        # the V and its stand are taken away for the disc sweeps
+        ts.append(rig.post.hit(T, d) if with_board else np.full(nb, np.inf))
         ts.append(disc.hit(T, d) if disc is not None else np.full(nb, np.inf))
         ts.append(rig.room.hit(T, d))
         Tm = np.stack(ts, axis=1)
