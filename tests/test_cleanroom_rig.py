@@ -1,5 +1,6 @@
 """`lidarcal calibrate` on datasets of the clean-room simulator (scripts/cleanroom_rig.py),
-written from docs/dataset-format.md alone, against that simulator's own truth.
+written from docs/dataset-format.md alone, against that simulator's own truth
+(scripts/cleanroom_eval.py's comparison).
 
 The simulator shares no code with lidarcal (its own ray-cast images through OpenCV's lens
 model, speckle, shot and read noise; scans traced with a beam spot, quantised ranges,
@@ -10,7 +11,7 @@ bound in mm and degrees.
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import json
 import subprocess
 import sys
@@ -21,12 +22,10 @@ import pytest
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "cleanroom_rig.py"
 
 
-def _cleanroom():
-    spec = importlib.util.spec_from_file_location("cleanroom_rig", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses resolve their module by name
-    spec.loader.exec_module(mod)
-    return mod
+def _compare(monkeypatch):
+    """scripts/cleanroom_eval.py's own comparison of calibration.json with truth.json."""
+    monkeypatch.syspath_prepend(str(SCRIPT.parent))
+    return importlib.import_module("cleanroom_eval").compare
 
 
 # variant, seed, positions, bound on the mean LiDAR centre error (mm), on z / x axes (deg)
@@ -40,8 +39,8 @@ CASES = [
 
 
 @pytest.mark.parametrize(("variant", "seed", "positions", "centre_mm", "axes_deg"), CASES)
-def test_calibrate_against_cleanroom_truth(tmp_path, variant, seed, positions, centre_mm,
-                                           axes_deg):
+def test_calibrate_against_cleanroom_truth(tmp_path, monkeypatch, variant, seed, positions,
+                                           centre_mm, axes_deg):
     ds, out = tmp_path / "ds", tmp_path / "out"
     gen = subprocess.run([sys.executable, str(SCRIPT), str(ds), "--variant", variant,
                           "--seed", str(seed), "--positions", str(positions), "--no-sweeps"],
@@ -53,7 +52,7 @@ def test_calibrate_against_cleanroom_truth(tmp_path, variant, seed, positions, c
     assert cal_run.returncode == 0, cal_run.stderr
     cal = json.loads((out / "calibration.json").read_text())
     truth = json.loads((ds / "truth.json").read_text())
-    r = _cleanroom().compare(cal, truth)
+    r = _compare(monkeypatch)(cal, truth)
     assert r["positions"] + r["skipped"] == positions
     assert r["positions"] >= positions - 1, cal["skipped"]
     # every position's centre, z and x axis within 3 of their own sigma, and a stated bound
