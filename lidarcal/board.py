@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from .camera import project_points, undistort_pixels
+from .camera import backproject_to_plane, project_points, undistort_pixels
 from .corner_symmetry import symmetric_corners
 from .corners import detect_chessboard, saddle_corners, sb_accuracy_corners
 from .geometry import MAD_TO_SIGMA, Plane, as_points, nearest_rotation
@@ -235,6 +235,13 @@ def board_outline_px(camera: CameraModel, R: np.ndarray, T: np.ndarray, board: B
     xy = np.vstack(edges)
     P = np.column_stack([xy, np.zeros(len(xy))]) @ np.asarray(R).T + np.asarray(T)
     return project_points(camera, P)
+
+
+def inner_diagonal_mm(camera: CameraModel, view: BoardView) -> float:
+    """The board's inner-corner grid diagonal, mm: its first and last corners (opposite
+    corners in OpenCV's order) cast onto the board's plane (eqs. 1-3)."""
+    ends = backproject_to_plane(camera, view.corners_px[[0, -1]], view.plane)
+    return float(np.linalg.norm(ends[1] - ends[0]))
 
 
 STRIPE_BORDER_SQUARES = 0.5  # white border beyond the pattern searched for the stripe

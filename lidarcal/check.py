@@ -177,7 +177,8 @@ def _thumbnail(image: np.ndarray, width: int = THUMB_WIDTH_PX) -> tuple[np.ndarr
 
 def _check_position(pos: Position, camera: CameraModel | None, boards, lidar, rho) -> PositionCheck:
     """Section 1's detections at one position (no fit of a pose): stripes, then the scan's V."""
-    from .scan import split_v
+    from .board import inner_diagonal_mm
+    from .scan import split_v, v_segment_limit_mm
     from .stripe import board_stripe_centres, camera_lines_from_centres
 
     out = PositionCheck(pos.index, pos.psi_deg, pos.stripe_image, pos.scan)
@@ -216,7 +217,9 @@ def _check_position(pos: Position, camera: CameraModel | None, boards, lidar, rh
         out.problems.append(str(e))
         return out
     try:
-        seg = split_v(ang, rng, alpha=alpha)
+        limit = None if boards is None else v_segment_limit_mm(
+            [inner_diagonal_mm(camera, b) for b in boards])
+        seg = split_v(ang, rng, alpha=alpha, max_segment_mm=limit)
         out.v_points = (len(seg.index1), len(seg.index2))
         out.v_opening_deg = float(seg.opening_deg)
     except ValueError as e:
@@ -233,6 +236,7 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     from .calibration_checks import setup_warnings
     from .pipeline import (
         MIN_POSITIONS,
+        _unwrapped,
         blur_warning,
         camera_for,
         find_boards,
@@ -274,13 +278,17 @@ def check_dataset(dataset: str | os.PathLike | Dataset, progress: bool = False) 
     res.positions = [_check_position(p, camera, boards, ds.lidar, rho) for p in todo]
 
     s = summarise_dataset(ds)
-    psi = np.sort([p.psi_deg for p in ds.positions])
+    # the angles as calibrate reads them: one sweep where a controller wraps at 360 deg
+    swept, wrap_notes = _unwrapped(ds, list(ds.positions))
+    res.notes += wrap_notes
+    psi_of = {p.index: p.psi_deg for p in swept}
+    psi = np.sort(list(psi_of.values()))
     steps = np.diff(psi)
     if len(steps) and steps.max() > 1.5 * steps.min():
         res.notes.append(f"the angle steps vary from {steps.min():g} to {steps.max():g} deg "
                          f"(median {s.psi_step_deg:g})")
     good = [p for p in res.positions if p.detected]
-    res.notes += setup_warnings(np.array([p.psi_deg for p in good]) if good else psi, good)
+    res.notes += setup_warnings(np.array([psi_of[p.index] for p in good]) if good else psi, good)
     if boards is not None:
         res.notes += small_square_warnings(boards, ds.v_board, ds.board_image)
     if boards is not None and len(good) < MIN_POSITIONS:

@@ -27,7 +27,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import __version__
-from .board import BoardView, find_boards, find_v_boards, small_square_warnings
+from .board import (
+    BoardView,
+    find_boards,
+    find_v_boards,
+    inner_diagonal_mm,
+    small_square_warnings,
+)
 from .calibration_checks import (
     JOINT_RIGID_SIGMAS,
     check_angle_scale,
@@ -57,7 +63,7 @@ from .io.dataset import (
     write_json_atomic,
 )
 from .pose import single_shot_pose
-from .scan import LidarLines, VSegments, fit_v_lines, split_v
+from .scan import LidarLines, VSegments, fit_v_lines, split_v, v_segment_limit_mm
 from .stripe import (
     CameraLines,
     camera_lines,
@@ -154,7 +160,8 @@ def solve_position(pos: Position, camera: CameraModel, boards: tuple[BoardView, 
                                              f"--skip {pos.index}") from None
     ang, rng = read_scan(pos.scan, lidar)
     try:
-        seg = split_v(ang, rng, alpha=cl.alpha)
+        seg = split_v(ang, rng, alpha=cl.alpha, max_segment_mm=v_segment_limit_mm(
+            [inner_diagonal_mm(camera, b) for b in boards]))
         ll = fit_v_lines(seg.points1, seg.points2, cl.alpha)  # (the eq. 6 points of the beams)
     except ValueError as e:
         raise DatasetError(pos.scan, f"{e}; check this position or drop it with "

@@ -93,7 +93,8 @@ def _segment_ends(segments: list[LineSegment], pts: np.ndarray) -> np.ndarray:
 
 
 def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: float,
-             hi: float, alpha: float | None, alpha_tol_deg: float) -> list[tuple]:
+             hi: float, alpha: float | None, alpha_tol_deg: float,
+             max_segment_mm: float | None = None) -> list[tuple]:
     """Step (4) of :func:`split_v`: the pairs of segments that form the V, as ``(points,
     segment 1, segment 2, opening)`` in beam order of segment 1, then of segment 2.
 
@@ -102,7 +103,8 @@ def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: 
     point) and l2 (E to the foot of segment 2's last point), a concave turn (``z . (l1 x l2)
     < 0``) with an opening in ``[lo, hi]`` rad (and within ``alpha_tol_deg`` of ``alpha``),
     the vertex at the inner ends (at most 10 % beyond them into a segment, 25 % short of
-    them); segments between the two in beam order must lie farther than E (seen through a
+    them), each segment at most ``max_segment_mm`` long (when given: a board is not a
+    wall); segments between the two in beam order must lie farther than E (seen through a
     gap at the hinge).
     """
     ii, jj = [], []
@@ -133,6 +135,8 @@ def _v_pairs(segments: list[LineSegment], pts: np.ndarray, rho: np.ndarray, lo: 
               & (-0.1 * len2 <= gap2) & (gap2 <= 0.25 * len2))
         if alpha is not None:
             ok &= ~(np.abs(opening - alpha) > np.radians(alpha_tol_deg))
+        if max_segment_mm is not None:
+            ok &= (len1 <= max_segment_mm) & (len2 <= max_segment_mm)
     med_rho: dict[int, float] = {}
 
     def median_range(m: int) -> float:  # a segment's median range, when asked
@@ -233,10 +237,25 @@ def full_circle_cut(angle_deg: np.ndarray, range_mm: np.ndarray) -> int:
     return int((np.argmax(jumps) + 1) % n)
 
 
+V_SEGMENT_DIAGONALS = 2.5  # longest board segment, in inner-corner diagonals of the pattern
+
+
+def v_segment_limit_mm(diagonals_mm: list[float]) -> float:
+    """Longest scan segment that can lie on a board of the V, mm (section 1.4).
+
+    A scan line crosses a board at most along its diagonal; the inner-corner grid's
+    diagonal (:func:`lidarcal.board.inner_diagonal_mm`, measured in board.png) times
+    ``V_SEGMENT_DIAGONALS`` leaves room for a white border of about half the pattern on
+    every side and a slanted crossing, while a room's walls (metres) stay out.
+    """
+    return V_SEGMENT_DIAGONALS * max(diagonals_mm)
+
+
 def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: float | None = None,
             alpha: float | None = None, alpha_tol_deg: float = 15.0,
             opening_deg: tuple[float, float] | None = None, min_points: int = 8,
-            max_gap: int = 4, max_trim: int = 3) -> VSegments:
+            max_gap: int = 4, max_trim: int = 3,
+            max_segment_mm: float | None = None) -> VSegments:
     """Find the two board segments of the V in one scan (section 1.4).
 
     The scan also holds background, mounts, spurious returns, dropped beams and
@@ -270,6 +289,11 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         angle: the camera says which), else 90-170 deg.
     min_points : int
         Fewest points of a board segment.
+    max_segment_mm : float, optional
+        Longest board segment, mm (:func:`v_segment_limit_mm`: a few of the pattern's
+        diagonals). Without it a room's corner (two walls at 90 deg, metres long, many
+        more returns than the boards) seen by a wide-angle scanner can win over a V of
+        100 deg.
 
     Raises
     ------
@@ -284,7 +308,7 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         seg = split_v(rolled, np.roll(np.asarray(range_mm, dtype=float), -cut),
                       range_noise_mm=range_noise_mm, alpha=alpha, alpha_tol_deg=alpha_tol_deg,
                       opening_deg=opening_deg, min_points=min_points, max_gap=max_gap,
-                      max_trim=max_trim)
+                      max_trim=max_trim, max_segment_mm=max_segment_mm)
         back = {k: (getattr(seg, k) + cut) % n for k in ("index1", "index2", "rejected1", "rejected2")}
         return replace(seg, **back, info={**seg.info, "full_circle_cut": cut})
     pts = scan_points(ang, range_mm)
@@ -303,11 +327,13 @@ def split_v(angle_deg: np.ndarray, range_mm: np.ndarray, *, range_noise_mm: floa
         opening_deg = ((max(1.0, np.degrees(alpha) - alpha_tol_deg), min(179.0, np.degrees(alpha) + alpha_tol_deg))
                        if alpha is not None else (90.0, 170.0))
     lo, hi = np.radians(opening_deg)
-    candidates = _v_pairs(segments, pts, rho, lo, hi, alpha, alpha_tol_deg)
+    candidates = _v_pairs(segments, pts, rho, lo, hi, alpha, alpha_tol_deg, max_segment_mm)
     if not candidates:
         raise ValueError(f"found {len(segments)} line segments but no pair forms the V "
                          f"(adjacent, concave, opening {opening_deg[0]:.0f}-{opening_deg[1]:.0f} deg"
                          + (f", within {alpha_tol_deg:g} deg of alpha" if alpha is not None else "")
+                         + (f", each at most {max_segment_mm:.0f} mm long"
+                            if max_segment_mm is not None else "")
                          + "); the scan plane must cross both boards")
     candidates.sort(key=lambda c: -c[0])
     _, s1, s2, opening = candidates[0]

@@ -86,7 +86,10 @@ def summarise_dataset(ds: Dataset) -> DatasetSummary:
     """The positions, turntable range, camera source and truth of a dataset (no images read)."""
     import numpy as np
 
-    psi = np.sort([p.psi_deg for p in ds.positions])
+    from .turntable import unwrap_angles_deg
+
+    # as calibrate reads them: one sweep where a controller wraps at 360 deg
+    psi = np.sort(unwrap_angles_deg([p.psi_deg for p in ds.positions]))
     step = float(np.median(np.diff(psi))) if len(psi) > 1 else 0.0
     cam = "dataset.json" if ds.camera is not None \
         else f"intrinsics/ ({len(ds.intrinsics_images())} views)"

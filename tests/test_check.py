@@ -144,3 +144,34 @@ def test_an_unreadable_board_image_is_exit_2_naming_it_like_a_missing_one(datase
     assert r.returncode == 2, r.stdout + r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith(f"error: {board}: ")
     assert "Traceback" not in r.stderr and not (tmp_path / "sheet.png").exists()
+
+
+def test_angles_wrapping_at_360_are_one_sweep_as_calibrate_reads_them(dataset_copy):
+    """A controller that wraps at 360 deg (found by scripts/cleanroom_rig.py, coarse_lidar):
+    `check` reported a 12-deg sweep through 0 as a span of 358 deg with steps "from 0.52 to
+    348.5 deg" (and could not warn about a short span); it now reads the angles as calibrate
+    does, one sweep, and says so naming positions.csv."""
+    import csv
+
+    from lidarcal.workbook import summarise_dataset
+
+    before = check_dataset(dataset_copy)
+    s0 = summarise_dataset(before.dataset)
+    path = dataset_copy / "positions.csv"
+    rows = list(csv.DictReader(path.open()))
+    lo = min(float(r["psi_deg"]) for r in rows)
+    for r in rows:  # the same steps, the sweep starting 0.3 deg before the wrap
+        r["psi_deg"] = f"{(float(r['psi_deg']) - lo + 359.7) % 360.0:.4f}"
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    psis = [float(r["psi_deg"]) for r in rows]
+    assert min(psis) < 1.0 and max(psis) > 359.0
+    after = check_dataset(dataset_copy)
+    s1 = summarise_dataset(after.dataset)
+    assert after.usable
+    assert s1.psi_max_deg - s1.psi_min_deg == pytest.approx(s0.psi_max_deg - s0.psi_min_deg, abs=1e-3)
+    assert s1.psi_step_deg == pytest.approx(s0.psi_step_deg, abs=1e-3)
+    assert any("wraps at 360 deg" in n and "positions.csv" in n for n in after.notes)
+    assert not any("angle steps vary" in n for n in after.notes)
