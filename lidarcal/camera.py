@@ -163,7 +163,8 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     rejected = sorted(rejected + [p for p, _ in unreadable])
     notes = tuple(f"{p}: {problem}; view not used" for p, problem in unreadable)
     notes += tuple(f"{p}: the {board.inner_corners[0]}x{board.inner_corners[1]} chessboard was "
-                   "not found (all its inner corners must be in the photo); view not used"
+                   "not found (all its inner corners must be in the photo, in focus and not "
+                   "seen too obliquely); view not used"
                    for p in rejected if p not in {q for q, _ in unreadable})
     if len(used) < MIN_VIEWS:
         raise DatasetError(folder, f"the {board.inner_corners[0]}x{board.inner_corners[1]} "
@@ -174,11 +175,15 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
                                       if unreadable else "")
                                    + "; add views or fix the board's pattern "
                                      "('intrinsics_board' in dataset.json, --pattern)")
+    # the lens model on all views, the views checked under it, and the model chosen again
+    # when views were left out (a wide lens's corner views fit a k3-fixed model badly)
+    flags, heldout = _lens_model(img_pts, obj_pts, size, fix_k3)
     used, img_pts, obj_pts, left_out, folder_notes = _checked_views(used, img_pts, obj_pts,
-                                                                    size, board, folder)
+                                                                    size, board, folder, flags)
     rejected = sorted(rejected + [p for p, _ in left_out])
     notes += tuple(w for _, w in left_out) + tuple(folder_notes)
-    flags, heldout = _lens_model(img_pts, obj_pts, size, fix_k3)
+    if left_out:
+        flags, heldout = _lens_model(img_pts, obj_pts, size, fix_k3)
     res = _calibrate(img_pts, obj_pts, size, flags)
     if symmetric is None:
         symmetric = SYMMETRIC_PHOTOS
@@ -233,12 +238,13 @@ def _lens_model(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tupl
 
 
 def _checked_views(used: list[Path], img_pts: list[np.ndarray], obj_pts: list[np.ndarray],
-                   size: tuple[int, int], board: BoardSpec, folder: Path
+                   size: tuple[int, int], board: BoardSpec, folder: Path, flags: int
                    ) -> tuple[list[Path], list[np.ndarray], list[np.ndarray],
                               list[tuple[Path, str]], list[str]]:
     """The views without repeats (:func:`lidarcal.intrinsics_checks.duplicate_views`) and
     without views that fit the other views' camera badly
-    (:func:`lidarcal.intrinsics_checks.view_outlier`, worst first, refitted after each, at most
+    (:func:`lidarcal.intrinsics_checks.view_outlier` under the lens model ``flags``, worst
+    first, refitted after each, at most
     ``MAX_OUTLIER_SHARE`` of them); also ``(path, warning)`` of each view left out and the
     folder's warnings."""
     out: list[tuple[Path, str]] = []
@@ -252,7 +258,7 @@ def _checked_views(used: list[Path], img_pts: list[np.ndarray], obj_pts: list[np
     noise = [grid_noise_px(q, board.pattern_size) for q in img_pts]
     budget = int(MAX_OUTLIER_SHARE * len(used))
     while len(used) >= MIN_VIEWS_CHECKED:
-        held = held_out_views(img_pts, obj_pts, size, cv2.CALIB_FIX_K3)
+        held = held_out_views(img_pts, obj_pts, size, flags)
         k = view_outlier(held, np.asarray(noise))
         if k is None:
             break

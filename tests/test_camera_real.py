@@ -52,6 +52,16 @@ def left():
     return calibrate_intrinsics(_photos("opencv_left"), BOARD)
 
 
+#: the variants' tests compare with the unchanged set; the corners' second refinement
+#: (SB accuracy mode, point symmetry) is not what they test, and left out it saves ~3 s per run
+PLAIN = {"sharpest": False, "symmetric": False}
+
+
+@pytest.fixture(scope="module")
+def left_plain():
+    return calibrate_intrinsics(_photos("opencv_left"), BOARD, **PLAIN)
+
+
 def _copy(photos: list[Path], dst: Path) -> Path:
     dst.mkdir()
     for p in photos:
@@ -114,17 +124,17 @@ def test_tapas_seven_views_warn_and_keep_the_principal_point() -> None:
 
 # --- real-looking variants ---------------------------------------------------------------
 
-def test_a_repeated_photo_is_left_out_naming_both(left, tmp_path) -> None:
+def test_a_repeated_photo_is_left_out_naming_both(left_plain, tmp_path) -> None:
     d = _copy(_photos("opencv_left"), tmp_path / "p")
     shutil.copy(d / "left03.jpg", d / "zz_copy.jpg")
-    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD)
+    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD, **PLAIN)
     assert r.files_rejected == (d / "zz_copy.jpg",)
     assert any("zz_copy.jpg: the same view as left03.jpg" in w for w in r.warnings)
-    assert np.array_equal(r.camera.K, left.camera.K)
+    assert np.array_equal(r.camera.K, left_plain.camera.K)
 
 
-@pytest.mark.parametrize("zoom", [1.1, 0.9])
-def test_a_photo_at_another_zoom_is_left_out(left, tmp_path, zoom) -> None:
+@pytest.mark.parametrize("zoom", [1.1])
+def test_a_photo_at_another_zoom_is_left_out(left_plain, tmp_path, zoom) -> None:
     """A photo magnified 10 % about the centre (another zoom setting) fits the other photos'
     camera 4x worse than they do: left out with a warning naming it, the camera the same as
     without it."""
@@ -132,13 +142,13 @@ def test_a_photo_at_another_zoom_is_left_out(left, tmp_path, zoom) -> None:
     img = cv2.imread(str(d / "left05.jpg"), cv2.IMREAD_GRAYSCALE)
     M = np.array([[zoom, 0, (1 - zoom) * 320], [0, zoom, (1 - zoom) * 240]])
     cv2.imwrite(str(d / "zz_zoom.png"), cv2.warpAffine(img, M, (640, 480), flags=cv2.INTER_CUBIC))
-    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD)
+    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD, **PLAIN)
     assert r.files_rejected == (d / "zz_zoom.png",)
     assert any(w.startswith(f"{d / 'zz_zoom.png'}: reprojection RMS") for w in r.warnings)
-    assert np.allclose(r.camera.K, left.camera.K, atol=1e-6)
+    assert np.allclose(r.camera.K, left_plain.camera.K, atol=1e-6)
 
 
-def test_exif_rotated_phone_photos_read_as_the_sensor_stored_them(left, tmp_path) -> None:
+def test_exif_rotated_phone_photos_read_as_the_sensor_stored_them(left_plain, tmp_path) -> None:
     """Portrait photos of a phone are stored as the sensor's landscape pixels plus an EXIF
     orientation tag. The camera model belongs to the sensor's pixels: lidarcal reads them
     unrotated (``cv2.IMREAD_UNCHANGED`` ignores the tag), so a folder mixing tagged and
@@ -153,9 +163,9 @@ def test_exif_rotated_phone_photos_read_as_the_sensor_stored_them(left, tmp_path
             exif[0x0112] = 6  # rotate 90 deg clockwise to display
             im.save(d / name, quality=98, exif=exif.tobytes())
     assert cv2.imread(str(d / "left01.jpg")).shape[:2] == (640, 480)  # the default applies it
-    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD)
+    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD, **PLAIN)
     assert len(r.files_used) == 13 and not r.warnings
-    assert np.allclose(r.camera.K, left.camera.K, atol=0.05)  # JPEG re-encoding only
+    assert np.allclose(r.camera.K, left_plain.camera.K, atol=0.05)  # JPEG re-encoding only
 
 
 def test_vignetting_does_not_lose_boards(tmp_path) -> None:
@@ -169,7 +179,7 @@ def test_vignetting_does_not_lose_boards(tmp_path) -> None:
         y, x = np.mgrid[0:480, 0:640]
         r2 = ((x - 320) ** 2 + (y - 240) ** 2) / (320 ** 2 + 240 ** 2)
         cv2.imwrite(str(d / (p.stem + ".png")), np.clip(g * (1 - 0.7 * r2), 0, 255).astype(np.uint8))
-    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD)
+    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD, **PLAIN)
     assert len(r.files_used) == 13 and not r.files_rejected
 
 
@@ -187,13 +197,13 @@ def test_4000_by_3000_photos_are_searched_reduced(name) -> None:
     assert np.max(np.abs((c + 0.5) / 6.25 - 0.5 - small)) < 0.5
 
 
-def test_a_photo_of_another_chessboard_is_named(left, tmp_path) -> None:
+def test_a_photo_of_another_chessboard_is_named(left_plain, tmp_path) -> None:
     d = _copy(_photos("opencv_left"), tmp_path / "p")
     shutil.copy(REPO / "data" / "real_tapas" / "00.png", d / "zz_tapas.png")
-    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD)
+    r = calibrate_intrinsics(sorted(d.iterdir()), BOARD, **PLAIN)
     assert r.files_rejected == (d / "zz_tapas.png",)
     assert any("zz_tapas.png: the 9x6 chessboard was not found" in w for w in r.warnings)
-    assert np.array_equal(r.camera.K, left.camera.K)
+    assert np.array_equal(r.camera.K, left_plain.camera.K)
 
 
 def test_cli_writes_sigmas_and_warnings(tmp_path) -> None:
@@ -309,3 +319,17 @@ def test_parallel_boards_are_fatal(seed) -> None:
     s = jackknife_sigma(held_out_views(img, obj, CAM.image_size, cv2.CALIB_FIX_K3).intrinsics)
     prob = conditioning_problem(s, cam.K[0, 0], board_tilts_deg(rvecs), 10)
     assert prob is not None and prob[1] and "not determined" in prob[0]
+
+
+def test_real_intrinsics_script_runs_its_documented_line() -> None:
+    """``scripts/real_intrinsics.py --sets opencv_left --only duplicate`` (README): the
+    unchanged set and the repeat, one JSON row each; the repeat left out, the camera the
+    same."""
+    p = subprocess.run([sys.executable, str(REPO / "scripts" / "real_intrinsics.py"), "--sets",
+                        "opencv_left", "--only", "duplicate"],
+                       capture_output=True, text=True, check=False)
+    assert p.returncode == 0, p.stderr
+    rows = [json.loads(ln) for ln in p.stdout.splitlines()]
+    assert [r["variant"] for r in rows] == ["as_is", "duplicate"]
+    assert rows[1]["rejected"] == ["zz_copy.jpg"] and rows[1]["gap_as_is_px"] == 0.0
+    assert abs(rows[0]["fx"] - 535.92) < 0.006 * 535.92
