@@ -113,9 +113,14 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     Each view's corners come from :func:`detect_chessboard`; views where the
     board is not found are listed in ``files_rejected``. ``cv2.calibrateCamera``
     then estimates the model. ``fix_k3``: True keeps k3 at 0, False frees it,
-    None (default) fixes it with fewer than ``MIN_VIEWS_FOR_K3`` usable views
-    and otherwise frees it only when that lowers the cross-validated (held-out
-    views) reprojection RMS by more than 3 % (``K3_GAIN``, :func:`heldout_rms_px`).
+    None (default) chooses the lens model on held-out views (:func:`_lens_model`:
+    p1, p2 and then k3 only when they lower the cross-validated reprojection RMS by more
+    than 3 %, ``K3_GAIN``; k3 only with ``MIN_VIEWS_FOR_K3`` views). Under that model a
+    repeated view and views that fit the other views' camera badly are left out, each
+    with a warning naming it (:func:`_checked_views`). The jackknife 1-sigma of fx, fy, cx,
+    cy (``sigma_px``) is measured by leaving groups of views out; a camera the photos do
+    not determine is warned about, naming what to add, or refused beyond 5 %
+    (:func:`lidarcal.intrinsics_checks.conditioning_problem`).
     ``sharpest`` (default): each view then keeps the corner set its pose fits best
     (:func:`_sharpest_views`) and the model is fitted again with the same flags.
     ``symmetric`` (None: ``SYMMETRIC_PHOTOS``): each view's corners are then refined by their
@@ -124,8 +129,8 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     Raises
     ------
     DatasetError
-        Naming the folder, when fewer than 3 views are usable, or naming a
-        file whose size differs from the others / ``image_size``.
+        Naming the folder, when fewer than 3 views are usable or the camera is not
+        determined by them, or naming a file whose size differs from ``image_size``.
     """
     paths = [Path(p) for p in paths]
     folder = paths[0].parent if paths else Path("intrinsics")
