@@ -333,3 +333,30 @@ def test_real_intrinsics_script_runs_its_documented_line() -> None:
     assert [r["variant"] for r in rows] == ["as_is", "duplicate"]
     assert rows[1]["rejected"] == ["zz_copy.jpg"] and rows[1]["gap_as_is_px"] == 0.0
     assert abs(rows[0]["fx"] - 535.92) < 0.006 * 535.92
+
+
+def test_calibrate_from_photos_names_the_photos_left_out(tmp_path, cli) -> None:
+    """``lidarcal calibrate`` on a dataset whose camera comes from ``intrinsics/`` (the bundled
+    rig's 12 views, its stored camera removed), with a repeated view and a view at a 10 %
+    other zoom added: both left out, named in calibration.json's warnings and camera block;
+    the 12 views used."""
+    from conftest import BUNDLED, bundled_dataset
+
+    ds = bundled_dataset(tmp_path / "ds", n=4)
+    d = json.loads((ds / "dataset.json").read_text())
+    del d["camera"]
+    (ds / "dataset.json").write_text(json.dumps(d))
+    intr = _copy(sorted((BUNDLED / "intrinsics").glob("*.png")), ds / "intrinsics")
+    shutil.copy(intr / "view_03.png", intr / "view_90.png")
+    img = cv2.imread(str(intr / "view_05.png"), cv2.IMREAD_GRAYSCALE)
+    h, w = img.shape
+    M = np.array([[1.1, 0, -0.05 * w], [0, 1.1, -0.05 * h]])
+    cv2.imwrite(str(intr / "view_91.png"), cv2.warpAffine(img, M, (w, h), flags=cv2.INTER_CUBIC))
+    p = cli("calibrate", ds, "--out", tmp_path / "out", "--method", "rigid")
+    assert p.returncode == 0, p.stderr
+    cal = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert sorted(cal["camera"]["rejected"]) == ["view_90.png", "view_91.png"]
+    warns = " ".join(cal["warnings"])
+    assert "view_90.png: the same view as view_03.png" in warns
+    assert "view_91.png: reprojection RMS" in warns
+    assert len(cal["camera"]["views"]) == 12
