@@ -163,8 +163,14 @@ def test_exif_rotated_phone_photos_read_as_the_sensor_stored_them(left_plain, tm
             exif[0x0112] = 6  # rotate 90 deg clockwise to display
             im.save(d / name, quality=98, exif=exif.tobytes())
     assert cv2.imread(str(d / "left01.jpg")).shape[:2] == (640, 480)  # the default applies it
+    # a photo an app really rotated (rewritten 480 x 640): another size, left out and named
+    cv2.imwrite(str(d / "zz_turned.jpg"),
+                cv2.rotate(cv2.imread(str(d / "left05.jpg"), cv2.IMREAD_UNCHANGED),
+                           cv2.ROTATE_90_CLOCKWISE))
     r = calibrate_intrinsics(sorted(d.iterdir()), BOARD, **PLAIN)
-    assert len(r.files_used) == 13 and not r.warnings
+    assert len(r.files_used) == 13 and r.files_rejected == (d / "zz_turned.jpg",)
+    assert r.warnings == ((f"{d / 'zz_turned.jpg'}: image is 480x640, the other photos 640x480; "
+                          "view not used"),)
     assert np.allclose(r.camera.K, left_plain.camera.K, atol=0.05)  # JPEG re-encoding only
 
 
