@@ -180,17 +180,20 @@ def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
     The detector and the corner refinement see the photo without the laser
     (:func:`board_gray` with ``paint``; it breaks the detector and pulls corners); the
     pattern is tried as given and swapped (8x5 = 5x8), the detector's exhaustive mode
-    last; a photo larger than ``BOARD_SEARCH_PX`` is searched reduced to it first (the
+    next, and last with a few stray corners put at their grid prediction (the laser's
+    core across a corner; ``detect_chessboard(predict_strays=True)``); a photo larger than ``BOARD_SEARCH_PX`` is searched reduced to it first (the
     corners refined at full size). Returns the corners and the board spec they match.
     """
     clean = board_gray(image, colour, response, paint)
     down = min(1.0, BOARD_SEARCH_PX / max(clean.shape[:2]))  # large photos: searched reduced
     c, r = board.inner_corners
     specs = (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,)
-    for exhaustive in (False, True):
+    # last, a few corners that no refinement can place (the laser's core across them) put
+    # at their grid prediction: board_view_robust then checks them against the pose
+    for exhaustive, strays in ((False, False), (True, False), (False, True)):
         for spec in specs:
             corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive,
-                                        downscale=down)
+                                        downscale=down, predict_strays=strays)
             if corners is not None:
                 return corners, spec
     return None
