@@ -60,8 +60,8 @@ class Camera:
         return {"K": self.K.tolist(), "dist": self.dist.tolist(), "image_size": list(self.size)}
 
 
-def make_camera(rng: np.random.Generator, big: bool = False) -> Camera:
-    w, h = (1600, 1200) if big else (1280, 960)
+def make_camera(rng: np.random.Generator, big: bool = False, small: bool = False) -> Camera:
+    w, h = (640, 480) if small else (1600, 1200) if big else (1280, 960)
     f = w * rng.uniform(0.78, 0.95)
     K = np.array([[f, 0, w / 2 + rng.uniform(-15, 15)], [0, f * rng.uniform(0.998, 1.002),
                   h / 2 + rng.uniform(-12, 12)], [0, 0, 1.0]])
@@ -316,14 +316,14 @@ class Lidar:
     dropout: float
 
 
-def make_lidar(rng) -> Lidar:
+def make_lidar(rng, noise_mm: tuple[float, float] = (2.0, 4.0)) -> Lidar:
     # LiDAR x forward (camera z), y to the left (camera -x), z up (camera -y), a little off
     base = np.array([[0, -1, 0], [0, 0, -1], [1, 0, 0]], float)
     R = rot("x", rng.uniform(-3, 3)) @ rot("y", rng.uniform(-4, 4)) @ rot("z", rng.uniform(-2, 2)) @ base
     T = np.array([rng.uniform(-80, 80), rng.uniform(90, 160), rng.uniform(-60, 20)])
     step = 0.25
     angles = np.arange(-135, 135 + step / 2, step)
-    return Lidar(R, T, angles, rng.uniform(2.0, 4.0), 0.01)
+    return Lidar(R, T, angles, rng.uniform(*noise_mm), 0.01)
 
 
 def scan(rng, lid: Lidar, surfaces: list) -> tuple[np.ndarray, np.ndarray]:
@@ -382,16 +382,20 @@ PLANES_VARIANTS = {
     "plain": {"inner": (7, 5), "square": 80.0, "margin": (45, 45, 60, 60), "wall": False, "vertical": False, "big": False},
     "wall": {"inner": (9, 6), "square": 60.0, "margin": (30, 30, 30, 30), "wall": True, "vertical": False, "big": True},
     "vertical": {"inner": (6, 8), "square": 70.0, "margin": (50, 50, 50, 50), "wall": False, "vertical": True, "big": False},
+    # a small printed pattern on a large foam board, a wall close behind in every view, the
+    # person holding it right behind, a noisier LiDAR
+    "clutter": {"inner": (6, 4), "square": 50.0, "margin": (170, 150, 120, 160), "wall": True, "vertical": False,
+                "big": False, "wall_every": 1, "wall_gap": (8, 30), "person_gap": (120, 220), "noise": (3.5, 5.0)},
 }
 
 
-def make_planes(out: Path, seed: int, variant: str, n_views: int = 10) -> dict:
+def make_planes(out: Path, seed: int, variant: str, n_views: int = 10, small: bool = False) -> dict:
     """A `lidarcal planes` folder: NAME.jpg|png + NAME.csv, camera.json, truth.json."""
     rng = np.random.default_rng(1000 + seed * 7 + list(PLANES_VARIANTS).index(variant))
     cfg = PLANES_VARIANTS[variant]
     out.mkdir(parents=True, exist_ok=True)
-    cam = make_camera(rng, cfg["big"])
-    lid = make_lidar(rng)
+    cam = make_camera(rng, cfg["big"], small)
+    lid = make_lidar(rng, cfg.get("noise", (2.0, 4.0)))
     ren = Renderer(cam)
     (out / "camera.json").write_text(json.dumps(cam.to_json(), indent=1))
     views = []
@@ -424,14 +428,15 @@ def make_planes(out: Path, seed: int, variant: str, n_views: int = 10) -> dict:
         n, d = board.plane()
         br = board.rect()
         pole = Rect(br.centre + br.v * (br.half_v + 700) + n * 15, br.u, br.v, 18, 700, "stand")
-        person = Cylinder(br.centre + n * rng.uniform(250, 450) + br.u * rng.uniform(-300, 300), 170,
+        person = Cylinder(br.centre + n * rng.uniform(*cfg.get("person_gap", (250, 450)))
+                          + br.u * rng.uniform(-300, 300), 170,
                           -1500, 1200)
         room = [Rect(np.array([0, 0, 6000.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 5000, 3000, "room"),
                 Rect(np.array([-3500.0, 0, 2000]), np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), 5000, 3000, "room"),
                 Rect(np.array([3000.0, 0, 2000]), np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), 5000, 3000, "room")]
         extras = [pole]
-        if cfg["wall"] and k % 2 == 0:
-            gap = rng.uniform(15, 60)
+        if cfg["wall"] and k % cfg.get("wall_every", 2) == 0:
+            gap = rng.uniform(*cfg.get("wall_gap", (15, 60)))
             extras.append(Rect(br.centre + n * gap, br.u, br.v, 2500, 1500, "wall"))
         surfaces = [br, *extras, person, *room]
         r, label = scan(rng, lid, surfaces)
@@ -473,6 +478,9 @@ LASER_VARIANTS = {
                 "sheet": "vertical"},
     "green": {"colour": "green", "rgb": np.array([0.15, 1.0, 0.12]), "big": True, "inner": (9, 7), "square": 25.0,
                   "sheet": "horizontal"},
+    # coarse deep speckle, faint to blinding laser, wide sheets, overexposed rooms, JPEG 70-85
+    "harsh": {"colour": "red", "rgb": np.array([0.05, 0.12, 1.0]), "big": False, "inner": (8, 6), "square": 30.0,
+              "sheet": "vertical", "harsh": True},
 }
 
 
@@ -494,7 +502,7 @@ def laser_sheet(rng, kind: str) -> tuple[np.ndarray, float, np.ndarray]:
     return n, d, origin
 
 
-def make_laser(out: Path, seed: int, variant: str, n_photos: int = 14) -> dict:
+def make_laser(out: Path, seed: int, variant: str, n_photos: int = 14, small: bool = False) -> dict:
     """A `lidarcal laser-plane` folder: lights-on colour JPEG photos + camera.json + truth.json.
 
     The last two photos are hard on purpose: one with the board partly out of view, one whose
@@ -502,7 +510,7 @@ def make_laser(out: Path, seed: int, variant: str, n_photos: int = 14) -> dict:
     rng = np.random.default_rng(5000 + seed * 11 + list(LASER_VARIANTS).index(variant))
     cfg = LASER_VARIANTS[variant]
     out.mkdir(parents=True, exist_ok=True)
-    cam = make_camera(rng, cfg["big"])
+    cam = make_camera(rng, cfg["big"], small)
     ren = Renderer(cam)
     (out / "camera.json").write_text(json.dumps(cam.to_json(), indent=1))
     n, d, origin = laser_sheet(rng, cfg["sheet"])
@@ -548,20 +556,22 @@ def make_laser(out: Path, seed: int, variant: str, n_photos: int = 14) -> dict:
         # the laser reaches the board at a useful angle (not grazing)
         if abs(board.plane()[0] @ n) > 0.93:
             continue
-        sig = rng.uniform(0.4, 1.5)  # the sheet's 1-sigma half-thickness, mm
-        power = rng.uniform(0.8, 6.0)  # x full scale on white paper: faint to clipped
-        amb = rng.uniform(0.35, 0.9)
+        harsh = cfg.get("harsh", False)
+        sig = rng.uniform(0.4, 2.2 if harsh else 1.5)  # the sheet's 1-sigma half-thickness, mm
+        power = rng.uniform(0.5, 9.0) if harsh else rng.uniform(0.8, 6.0)  # x full scale on white paper
+        amb = rng.uniform(0.3, 1.15) if harsh else rng.uniform(0.35, 0.9)
         img, lz = render_scene(rng, ren, board, [], 1400.0 + rng.uniform(0, 600), amb,
                                laser=(n, d, sig, power, cfg["rgb"], origin))
         img *= vignetting(cam, rng.uniform(0.1, 0.35))[..., None]
-        sp = speckle(rng, lz.shape, rng.uniform(0.8, 1.5), rng.uniform(0.5, 0.9))
+        sp = speckle(rng, lz.shape, rng.uniform(1.2, 2.0) if harsh else rng.uniform(0.8, 1.5),
+                     rng.uniform(0.85, 1.0) if harsh else rng.uniform(0.5, 0.9))
         lz = lz * sp
         # blooming: a clipped core leaks into its neighbours and the other channels
         bloom = cv2.GaussianBlur(np.clip(lz - 1.0, 0, None), (0, 0), 2.0) * 0.15
         img = img + lz[..., None] * cfg["rgb"][None, None, :] + bloom[..., None]
         img8 = sensor(rng, img.astype(np.float32), bayer=True, blur_px=rng.uniform(0.5, 0.8))
         name = f"photo_{k:02d}"
-        write_jpeg(out / f"{name}.jpg", img8, int(rng.integers(85, 93)))
+        write_jpeg(out / f"{name}.jpg", img8, int(rng.integers(70, 86) if harsh else rng.integers(85, 93)))
         photos.append({"name": name, "special": special, "distance_mm": float(z),
                        "yaw": yaw, "pitch": pitch, "roll": roll, "sheet_sigma_mm": sig,
                        "power": power})
@@ -615,20 +625,26 @@ def evaluate_planes(folder: Path, out: Path, lidarcal: str) -> dict:
         "views_used": f"{len(used)}/{len(ex['views'])}", "rms_mm": ex["rms_mm"],
         "range_noise_true_mm": truth["range_noise_mm"],
         "warnings": ex.get("warnings", []),
-        "board_beams_recall": board_beam_recall(ex, truth),
+        "board_beams_recall": board_beam_recall(ex, truth, folder),
     })
     return res
 
 
-def board_beam_recall(ex: dict, truth: dict) -> dict:
+def board_beam_recall(ex: dict, truth: dict, folder: Path) -> dict:
     """Of the returns lidarcal took as board, the share that truly hit the board (precision),
-    and the share of the true board returns it took (recall), over used views."""
+    and the share of the true board returns it took (recall), over used views. `beams` index
+    the rows of an angle/range CSV, but the returns (sorted by angle) of an x/y one."""
     tv = {v["name"]: set(v["board_beams"]) for v in truth["views"]}
     tp = fp = fn = 0
     for v in ex["views"]:
         if not v.get("used") or "beams" not in v:
             continue
         got = set(v["beams"])
+        csv_path = folder / f"{v['name']}.csv"
+        if csv_path.read_text().startswith("stamp,x_mm"):
+            _, r = read_scan(csv_path)
+            rows = np.flatnonzero(r > 0)  # ascending angle = ascending row here
+            got = {int(rows[b]) for b in got}
         true = tv.get(v["name"], set())
         tp += len(got & true)
         fp += len(got - true)
@@ -732,6 +748,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variant", default=None)
     ap.add_argument("--views", type=int, default=None, help="views / photos to make")
+    ap.add_argument("--small", action="store_true", help="a 640 x 480 camera (quick)")
     ap.add_argument("--evaluate", action="store_true", help="generate, run the CLI, compare with truth")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--variants", nargs="+", default=None)
@@ -771,9 +788,9 @@ def main(argv=None) -> int:
     if a.kind is None or a.out is None:
         ap.error("give KIND OUT, or --evaluate")
     if a.kind == "planes":
-        make_planes(a.out, a.seed, a.variant or "plain", a.views or 10)
+        make_planes(a.out, a.seed, a.variant or "plain", a.views or 10, a.small)
     else:
-        make_laser(a.out, a.seed, a.variant or "red", a.views or 14)
+        make_laser(a.out, a.seed, a.variant or "red", a.views or 14, a.small)
     return 0
 
 
