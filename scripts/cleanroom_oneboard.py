@@ -754,6 +754,8 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", nargs="+", default=None)
     ap.add_argument("--only", choices=["planes", "laser"], default=None)
     ap.add_argument("--work", type=Path, default=Path("/tmp/cleanroom_oneboard"))
+    ap.add_argument("--regenerate", action="store_true",
+                    help="remake folders already in --work (default: reuse them)")
     ap.add_argument("--lidarcal", default=str(Path(sys.executable).parent / "lidarcal"))
     a = ap.parse_args(argv)
     if a.evaluate:
@@ -764,9 +766,10 @@ def main(argv=None) -> int:
                     continue
                 for s in a.seeds:
                     f = a.work / f"planes_{v}_{s}"
-                    make_planes(f, s, v, a.views or 10)
                     h = a.work / f"planes_{v}_{s}_heldout"
-                    make_planes_heldout(f, h, s, v)
+                    if a.regenerate or not (h / "truth.json").is_file():
+                        make_planes(f, s, v, a.views or 10, a.small)
+                        make_planes_heldout(f, h, s, v, a.small)
                     r = evaluate_planes(f, a.work / f"out_planes_{v}_{s}", a.lidarcal)
                     if r["exit"] == 0:
                         r.update(heldout_rms(f, h, a.work / f"out_planes_{v}_{s}" / "extrinsics.json"))
@@ -778,7 +781,8 @@ def main(argv=None) -> int:
                     continue
                 for s in a.seeds:
                     f = a.work / f"laser_{v}_{s}"
-                    make_laser(f, s, v, a.views or 14)
+                    if a.regenerate or not (f / "truth.json").is_file():
+                        make_laser(f, s, v, a.views or 14, a.small)
                     for colour in ("auto", LASER_VARIANTS[v]["colour"]):
                         r = evaluate_laser(f, a.work / f"plane_{v}_{s}_{colour}.json", a.lidarcal, colour)
                         results.append(r)
@@ -794,9 +798,9 @@ def main(argv=None) -> int:
     return 0
 
 
-def make_planes_heldout(folder: Path, heldout: Path, seed: int, variant: str) -> None:
+def make_planes_heldout(folder: Path, heldout: Path, seed: int, variant: str, small: bool = False) -> None:
     """Views of the same rig the fit does not see: same seed's rig, more views, the last 4 kept."""
-    make_planes(heldout, seed, variant, n_views=14)
+    make_planes(heldout, seed, variant, n_views=14, small=small)
     truth = json.loads((heldout / "truth.json").read_text())
     for v in truth["views"][:10]:
         for p in heldout.glob(v["name"] + ".*"):
