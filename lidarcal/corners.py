@@ -20,7 +20,8 @@ from .geometry import MAD_TO_SIGMA
 
 
 def detect_chessboard(image: np.ndarray, pattern_size: tuple[int, int],
-                      exhaustive: bool = False, downscale: float = 1.0) -> np.ndarray | None:
+                      exhaustive: bool = False, downscale: float = 1.0,
+                      predict_strays: bool = False) -> np.ndarray | None:
     """Inner corners of one chessboard, OpenCV order, sub-pixel (N, 2) float64, or None.
 
     ``cv2.findChessboardCornersSB`` (``exhaustive`` adds ``CALIB_CB_EXHAUSTIVE``)
@@ -41,10 +42,13 @@ def detect_chessboard(image: np.ndarray, pattern_size: tuple[int, int],
     with ``cornerSubPix`` at full resolution as usual; only when that fails is the full
     image searched. On 4000 x 3000 photos (OpenCV's left*.jpg upscaled) SB at full size
     found 9 of 13 boards in 110 s; reduced to 2000 x 1500 first, all 13.
+
+    ``predict_strays``: see :func:`refine_corners` (a few corners that no refinement
+    agrees with are put at their grid prediction instead of rejecting the view).
     """
     gray = _gray(image)
     for corners, trust in _board_candidates(gray, tuple(pattern_size), exhaustive, downscale):
-        refined = refine_corners(gray, corners, pattern_size, trust)
+        refined = refine_corners(gray, corners, pattern_size, trust, predict_strays)
         if refined is not None:
             return refined
     return None
@@ -220,7 +224,8 @@ def _outlier_mask(r: np.ndarray) -> np.ndarray:
 
 
 def refine_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[int, int],
-                   trust_px: float | None = None) -> np.ndarray | None:
+                   trust_px: float | None = None, predict_strays: bool = False
+                   ) -> np.ndarray | None:
     """Sub-pixel corners with a window from the LOCAL square size, outliers checked.
 
     Each corner's half window is ``SUBPIX_WINDOW_SHARE`` of its shortest grid edge in
@@ -234,6 +239,13 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     the refinement moved further than that (and 1/20 of its square) counts as an outlier too
     (a marker or glint inside the window drags it). On the bundled real TAPAS views the fiducial rings beside the
     board's outer corners drag those corners by 12-14 px; they are caught here.
+
+    ``predict_strays`` (for a caller that checks the corners against one board pose
+    itself, :func:`lidarcal.laserplane.board_view_robust`): such a corner, when no
+    candidate agrees, is put at its grid prediction (:func:`grid_prediction_scaled`, from
+    the good corners alone) instead of rejecting the view; the 10 % limit still holds. A
+    line laser's bright core crossing a corner leaves no corner to refine there (in a
+    clean-room photo, ``scripts/cleanroom_oneboard.py``: two corners 4 px off, the view lost).
     """
     side = local_square_px(corners, pattern_size)
     half = np.maximum(np.floor(SUBPIX_WINDOW_SHARE * side), MIN_SUBPIX_HALF_WINDOW).astype(int)
@@ -252,10 +264,16 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
     if bad.sum() > max(2, 0.1 * len(out)):
         return None  # not a few stray corners: the view is not trusted
     pred, gain = grid_prediction_scaled(out, pattern_size, valid=~bad)
+    if predict_strays and not np.all(np.isfinite(pred[bad])):  # a board corner: reach further
+        wide, wide_gain = grid_prediction_scaled(out, pattern_size, reach=3, valid=~bad)
+        fill = ~np.isfinite(pred[:, 0])
+        pred[fill], gain[fill] = wide[fill], wide_gain[fill]
     if not np.all(np.isfinite(pred[bad])):
         return None
     r_good = (np.linalg.norm(out - pred, axis=1) / gain)[~bad]
-    limit = max(CORNER_OUTLIER_K * MAD_TO_SIGMA * float(np.median(r_good)), 0.5)
+    # (nanmedian: a good corner beside a bad one at the board's corner has no prediction;
+    # a NaN limit would let every candidate pass)
+    limit = max(CORNER_OUTLIER_K * MAD_TO_SIGMA * float(np.nanmedian(r_good)), 0.5)
     small = np.maximum(half // 2, MIN_SUBPIX_HALF_WINDOW)
     retry = _subpix(gray, pred[bad], small[bad])
     detector = np.asarray(corners, float)[bad]
@@ -266,7 +284,10 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, pattern_size: tuple[in
         errs = [float(np.linalg.norm(c - pred[k]) / gain[k]) for c in cands]
         best = int(np.argmin(errs))
         if errs[best] > limit:
-            return None
+            if not predict_strays:
+                return None
+            out[k] = pred[k]
+            continue
         out[k] = cands[best]
     return out
 

@@ -54,9 +54,11 @@ from .io.dataset import (
 )
 from .laser_colour import (
     _CHANNEL,
+    ALONG_STEP_DEG,
     CORE_MAX_PX,
     SATURATED_DN,
     along_stripe,
+    centres_direction_deg,
     clipped_areas,
     detect_laser_colour,
     laser_response,
@@ -180,17 +182,20 @@ def find_board(image: np.ndarray, board: BoardSpec, response: np.ndarray,
     The detector and the corner refinement see the photo without the laser
     (:func:`board_gray` with ``paint``; it breaks the detector and pulls corners); the
     pattern is tried as given and swapped (8x5 = 5x8), the detector's exhaustive mode
-    last; a photo larger than ``BOARD_SEARCH_PX`` is searched reduced to it first (the
+    next, and last with a few stray corners put at their grid prediction (the laser's
+    core across a corner; ``detect_chessboard(predict_strays=True)``); a photo larger than ``BOARD_SEARCH_PX`` is searched reduced to it first (the
     corners refined at full size). Returns the corners and the board spec they match.
     """
     clean = board_gray(image, colour, response, paint)
     down = min(1.0, BOARD_SEARCH_PX / max(clean.shape[:2]))  # large photos: searched reduced
     c, r = board.inner_corners
     specs = (board, BoardSpec((r, c), board.square_mm)) if c != r else (board,)
-    for exhaustive in (False, True):
+    # last, a few corners that no refinement can place (the laser's core across them) put
+    # at their grid prediction: board_view_robust then checks them against the pose
+    for exhaustive, strays in ((False, False), (True, False), (False, True)):
         for spec in specs:
             corners = detect_chessboard(clean, spec.pattern_size, exhaustive=exhaustive,
-                                        downscale=down)
+                                        downscale=down, predict_strays=strays)
             if corners is not None:
                 return corners, spec
     return None
@@ -358,11 +363,22 @@ def measure_photo(path: Path, camera: CameraModel, board: BoardSpec,
         board_clipped = clipped & mask  # overexposed squares on the board
         mask &= 1 - clipped
         mask &= 1 - wide_objects(response, mask, side)
-        response, along_deg = along_stripe(response, mask.astype(bool), side, edges,
-                                           smooth_px=side)
+        raw = response
+        response, along_deg = along_stripe(raw, mask.astype(bool), side, edges, smooth_px=side)
+        pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
+        # the direction of the centres' own line, when it differs from the searched one by
+        # more than the search's resolution: the average redone along it, kept when its
+        # centres scatter less about their line (measured in scripts/cleanroom_oneboard.py)
+        own = centres_direction_deg(pts)
+        if own is not None and abs((own - along_deg + 90) % 180 - 90) > ALONG_STEP_DEG / 10:
+            r2, d2 = along_stripe(raw, mask.astype(bool), side, edges, smooth_px=side,
+                                  direction_deg=own)
+            p2, i2 = stripe_centres(r2, mask.astype(bool), camera, return_info=True)
+            if len(p2) >= 5 and i2.get("fit_rms_px", np.inf) < info.get("fit_rms_px", np.inf):
+                response, along_deg, pts, info = r2, d2, p2, i2
     else:
         board_clipped, side = None, float("nan")
-    pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
+        pts, info = stripe_centres(response, mask.astype(bool), camera, return_info=True)
     if len(pts) >= 5 and "width_px" in info:  # the centroid centres guide Steger's detector
         sat = None if img.ndim != 3 or colour not in _CHANNEL else \
             img[..., _CHANNEL[colour]] >= SATURATED_DN
