@@ -123,7 +123,9 @@ def _chessboard_options(s: argparse.ArgumentParser, example: str, camera: bool =
     s.add_argument("--square-mm", type=_positive, required=req, default=None,
                    help=f"side of a square, mm{note}")
     if camera:
-        s.add_argument("--camera", type=Path, required=True, help="camera.json (K, dist, image_size)")
+        s.add_argument("--camera", type=Path, required=True,
+                       help="camera.json (K, dist, image_size), an OpenCV calibration "
+                            "YAML/XML or a ROS camera_info YAML")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -290,7 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "these views)")
     s.add_argument("--measurements", type=Path, default=None)
     s.add_argument("--camera", type=Path, default=None,
-                   help="pairs folder only: camera.json (default: FOLDER/camera.json)")
+                   help="pairs folder only: camera.json, an OpenCV calibration YAML/XML or a "
+                        "ROS camera_info YAML (default: FOLDER/camera.json)")
     s.add_argument("--pattern", type=_pattern, default=None,
                    help="pairs folder only: inner corners (default: FOLDER/board.json)")
     s.add_argument("--square-mm", type=_positive, default=None,

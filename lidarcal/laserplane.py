@@ -43,13 +43,12 @@ from .board import BoardView, board_view, pose_pnp
 from .camera import backproject_to_plane, project_points
 from .corners import detect_chessboard
 from .geometry import Plane, fit_plane
+from .io.camera_files import read_camera_file
 from .io.dataset import (
     BoardSpec,
     CameraModel,
     DatasetError,
     decode_image,
-    parse_camera,
-    read_json_object,
     write_json_atomic,
 )
 from .laser_colour import (
@@ -141,12 +140,10 @@ def _num(v: float | None) -> float | None:
 
 
 def read_camera_json(path: str | Path) -> CameraModel:
-    """``camera.json``: the keys of dataset.json's ``camera`` block (K, dist, image_size)."""
-    path = Path(path)
-    fix = "give the camera.json of `lidarcal intrinsics`"
-    raw = read_json_object(path, f"missing camera file; {fix}", fix, f" (K, dist, image_size); {fix}")
-    cam = parse_camera(raw, path)
-    return CameraModel(cam.K, cam.dist, cam.image_size, source=str(path), rms_px=raw.get("rms_px"))
+    """The ``--camera`` file: camera.json (the keys of dataset.json's ``camera`` block: K, dist,
+    image_size), an OpenCV calibration YAML/XML or a ROS camera_info YAML
+    (:func:`lidarcal.io.camera_files.read_camera_file`)."""
+    return read_camera_file(path)
 
 
 def board_gray(image: np.ndarray, colour: str, response: np.ndarray,

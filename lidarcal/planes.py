@@ -736,12 +736,11 @@ def run_planes(folder: str | Path, camera_json: str | Path, board: BoardSpec,
     assumed half of the pattern's shorter side, as before the measurement), calibrate.
     ``PlanesResult.board_margins`` is the ``extrinsics.json`` block (None with
     ``assumed_margin``)."""
-    from .io.dataset import parse_camera, read_json_object
+    from .io.camera_files import read_camera_file
     from .io.pairs import read_view_pairs
 
     cpath = Path(camera_json)
-    cam = parse_camera(read_json_object(cpath, "missing camera file; expected JSON with K, dist, "
-                                               "image_size", "fix it"), cpath)
+    cam = read_camera_file(cpath)
     pairs = read_view_pairs(folder)
     photos: list = []
     views = prepare_views(pairs, cam, board, photos=photos)

@@ -41,32 +41,23 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lidarcal.camera import project_points, undistort_pixels
+from lidarcal.io.camera_files import read_camera_file
 from lidarcal.io.dataset import CameraModel
 
 LIDARCAL = Path(sys.executable).with_name("lidarcal")
 
 
-def _yaml_matrix(path: Path, key: str) -> np.ndarray:
-    """One ``!!opencv-matrix`` of an OpenCV YAML file."""
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    try:
-        return np.asarray(fs.getNode(key).mat(), float)
-    finally:
-        fs.release()
-
-
 def published(name: str) -> CameraModel:
     """The camera the set's authors published."""
     if name == "opencv_left":
-        y = REPO / "tests" / "data" / "opencv_left" / "left_intrinsics.yml"
-        K, d = _yaml_matrix(y, "camera_matrix"), _yaml_matrix(y, "distortion_coefficients")
-    elif name == "opencv_right":
-        y = REPO / "tests" / "data" / "opencv_right" / "intrinsics.yml"
-        K, d = _yaml_matrix(y, "M2"), _yaml_matrix(y, "D2")
-    else:
-        c = json.loads((REPO / "data" / "real_tapas" / "camera.json").read_text())
-        K, d = np.asarray(c["K"], float), np.asarray(c["dist"], float)
-    return CameraModel(K, d.ravel()[:5], (640, 480))
+        return read_camera_file(REPO / "tests" / "data" / "opencv_left" / "left_intrinsics.yml")
+    if name == "opencv_right":  # the stereo sample's file: M2, D2 of the right camera, no size
+        fs = cv2.FileStorage(str(REPO / "tests" / "data" / "opencv_right" / "intrinsics.yml"),
+                             cv2.FILE_STORAGE_READ)
+        K, d = fs.getNode("M2").mat(), fs.getNode("D2").mat()
+        fs.release()
+        return CameraModel(np.asarray(K, float), np.asarray(d, float).ravel()[:5], (640, 480))
+    return read_camera_file(REPO / "data" / "real_tapas" / "camera.json")
 
 
 SETS = {

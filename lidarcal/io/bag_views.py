@@ -74,6 +74,7 @@ from .bag_read import (
     unreadable_bag,
 )
 from .bag_write import finish_out, prepare_out, scan_csv_text, write_png
+from .camera_files import pinhole_from_ros
 from .dataset import DatasetError, write_json_atomic
 
 CAMERAINFO = "sensor_msgs/msg/CameraInfo"
@@ -421,19 +422,12 @@ def camera_from_info(msg, topic: str) -> tuple[dict | None, str | None]:
     if int(msg.binning_x) > 1 or int(msg.binning_y) > 1 or int(msg.roi.width) or int(msg.roi.height):
         return None, (f"{topic}: CameraInfo uses binning or a region of interest (K is for the "
                       f"full sensor); camera.json not written; {fix}")
-    if model in ("plumb_bob", "rational_polynomial") or (model == "" and not D.any()):
-        if D.size > 5 and np.any(D[5:] != 0):
-            return None, (f"{topic}: {model} distortion with k4..k6 = {D[5:8].tolist()}; "
-                          "lidarcal's camera model has k1, k2, p1, p2, k3 only: camera.json "
-                          f"not written; {fix} (5 coefficients)")
-        dist = np.zeros(5)
-        dist[: min(D.size, 5)] = D[:5]
-        return {"K": K.tolist(), "dist": dist.tolist(), "image_size": size,
-                "source": f"CameraInfo {topic} ({model or 'no distortion'})"}, None
-    what = "equidistant (fisheye)" if model in ("equidistant", "fisheye") else repr(model)
-    return None, (f"{topic}: CameraInfo distortion model {what} is not OpenCV's pinhole "
-                  f"model that lidarcal uses (plumb_bob, rational_polynomial); camera.json not "
-                  f"written; {fix} (or record rectified images with their CameraInfo)")
+    block, why = pinhole_from_ros(K, D, model, size)
+    if block is None:
+        tail = ("(5 coefficients)" if "k4..k6" in why else
+                "(or record rectified images with their CameraInfo)")
+        return None, f"{topic}: CameraInfo {why}; camera.json not written; {fix} {tail}"
+    return {**block, "source": f"CameraInfo {topic} ({model or 'no distortion'})"}, None
 
 
 # ----------------------------------------------------------------------------- import
