@@ -21,11 +21,26 @@ import numpy as np
 from .corner_symmetry import symmetric_corners
 from .corners import detect_chessboard, grid_prediction_scaled, sb_accuracy_corners
 from .geometry import Plane, as_points
+from .intrinsics_checks import (
+    DUPLICATE_RMS_PX,
+    MAX_OUTLIER_SHARE,
+    MIN_VIEWS_CHECKED,
+    board_tilts_deg,
+    conditioning_problem,
+    duplicate_views,
+    held_out_views,
+    jackknife_sigma,
+    view_outlier,
+)
 from .io.dataset import BoardSpec, CameraModel, DatasetError, read_image
 from .lens import distort_normalised, distortion_jacobian
+from .zhang import MIN_VIEWS, heldout_rms_px, view_reprojection_sq
+from .zhang import zhang_fit as _calibrate
 
-#: OpenCV model used by :func:`calibrate_intrinsics`: k1, k2, p1, p2 and (with enough views) k3.
-MIN_VIEWS = 3
+#: photos with a longer side than this (px) are searched for the board reduced to it first
+#: (:func:`detect_chessboard`'s ``downscale``; corners refined at full size): OpenCV's SB
+#: detector takes 3-4 s per 4000 x 3000 photo and misses boards there
+SEARCH_MAX_SIDE_PX = 2560
 #: With fewer usable views than this, k3 is fixed at 0 (it is poorly determined by few views).
 MIN_VIEWS_FOR_K3 = 8
 #: Otherwise k3 is kept only if it lowers the CROSS-VALIDATED reprojection RMS (views the
@@ -58,24 +73,34 @@ class IntrinsicsResult:
     heldout_rms_px: dict | None = None
     #: further views of the same camera in the fit (:func:`add_views`): (name, rms_px)
     extra_views: tuple[tuple[str, float], ...] = ()
-    #: what the quality checks of :func:`add_views` found (they name the view)
+    #: what the quality checks found (each names the photo or the folder and what to do)
     warnings: tuple[str, ...] = ()
+    #: the jackknife 1-sigma of (fx, fy, cx, cy), px (:func:`lidarcal.intrinsics_checks.jackknife_sigma`)
+    sigma_px: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict:
         """``camera.json``: dataset.json's ``camera`` keys (K, dist, image_size, source,
         rms_px) plus ``views`` (each view's file and reprojection RMS, px), ``rejected``
-        (files where the board was not found or failed the corner check), ``k3``
-        ("fixed" or "free") and ``heldout_rms_px`` (cross-validated, when k3 was chosen)."""
+        (files left out: unreadable, board not found, a repeat, or fitting the others' camera
+        badly), ``k3`` ("fixed" or "free"), ``tangential`` ("zero" or "free"),
+        ``heldout_rms_px`` (cross-validated RMS of each lens model compared: ``k1k2``,
+        ``k3_fixed`` (k1, k2, p1, p2) and ``k3_free``), ``sigma_px`` (the jackknife 1-sigma of
+        fx, fy, cx, cy) and ``warnings``."""
         out = self.camera.to_dict()
         out["views"] = [{"name": p.name, "rms_px": float(r)}
                         for p, r in zip(self.files_used, self.per_view_rms_px)]
         out["rejected"] = [p.name for p in self.files_rejected]
         out["k3"] = "fixed" if self.flags & cv2.CALIB_FIX_K3 else "free"
+        out["tangential"] = "zero" if self.flags & cv2.CALIB_ZERO_TANGENT_DIST else "free"
         if self.extra_views:
             out["extra_views"] = [{"name": n, "rms_px": float(r)} for n, r in self.extra_views]
         if self.heldout_rms_px is not None:
-            out["heldout_rms_px"] = {"k3_fixed": self.heldout_rms_px[cv2.CALIB_FIX_K3],
-                                     "k3_free": self.heldout_rms_px[0]}
+            names = {cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST: "k1k2",
+                     cv2.CALIB_FIX_K3: "k3_fixed", 0: "k3_free"}
+            out["heldout_rms_px"] = {names[f]: float(v) for f, v in self.heldout_rms_px.items()}
+        if self.sigma_px is not None:
+            out["sigma_px"] = dict(zip(("fx", "fy", "cx", "cy"), self.sigma_px))
+        out["warnings"] = list(self.warnings)
         return out
 
 
@@ -88,9 +113,14 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     Each view's corners come from :func:`detect_chessboard`; views where the
     board is not found are listed in ``files_rejected``. ``cv2.calibrateCamera``
     then estimates the model. ``fix_k3``: True keeps k3 at 0, False frees it,
-    None (default) fixes it with fewer than ``MIN_VIEWS_FOR_K3`` usable views
-    and otherwise frees it only when that lowers the cross-validated (held-out
-    views) reprojection RMS by more than 3 % (``K3_GAIN``, :func:`heldout_rms_px`).
+    None (default) chooses the lens model on held-out views (:func:`_lens_model`:
+    p1, p2 and then k3 only when they lower the cross-validated reprojection RMS by more
+    than 3 %, ``K3_GAIN``; k3 only with ``MIN_VIEWS_FOR_K3`` views). Under that model a
+    repeated view and views that fit the other views' camera badly are left out, each
+    with a warning naming it (:func:`_checked_views`). The jackknife 1-sigma of fx, fy, cx,
+    cy (``sigma_px``) is measured by leaving groups of views out; a camera the photos do
+    not determine is warned about, naming what to add, or refused beyond 5 %
+    (:func:`lidarcal.intrinsics_checks.conditioning_problem`).
     ``sharpest`` (default): each view then keeps the corner set its pose fits best
     (:func:`_sharpest_views`) and the model is fitted again with the same flags.
     ``symmetric`` (None: ``SYMMETRIC_PHOTOS``): each view's corners are then refined by their
@@ -99,8 +129,8 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
     Raises
     ------
     DatasetError
-        Naming the folder, when fewer than 3 views are usable, or naming a
-        file whose size differs from the others / ``image_size``.
+        Naming the folder, when fewer than 3 views are usable or the camera is not
+        determined by them, or naming a file whose size differs from ``image_size``.
     """
     paths = [Path(p) for p in paths]
     folder = paths[0].parent if paths else Path("intrinsics")
@@ -115,7 +145,9 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
         except DatasetError as e:
             unreadable.append((p, e.problem.split("; ")[0]))
             continue
-        found.append((p, (img.shape[1], img.shape[0]), detect_chessboard(img, board.pattern_size)))
+        down = min(1.0, SEARCH_MAX_SIDE_PX / max(img.shape[:2]))  # large photos: reduced first
+        found.append((p, (img.shape[1], img.shape[0]),
+                      detect_chessboard(img, board.pattern_size, downscale=down)))
     if size is None and found:  # the photos' own size: that of most of them
         counts = Counter(s for _, s, _ in found)
         size, n = counts.most_common(1)[0]
@@ -135,6 +167,10 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
             obj_pts.append(obj.astype(np.float64))
     rejected = sorted(rejected + [p for p, _ in unreadable])
     notes = tuple(f"{p}: {problem}; view not used" for p, problem in unreadable)
+    notes += tuple(f"{p}: the {board.inner_corners[0]}x{board.inner_corners[1]} chessboard was "
+                   "not found (all its inner corners must be in the photo, in focus and not "
+                   "seen too obliquely); view not used"
+                   for p in rejected if p not in {q for q, _ in unreadable})
     if len(used) < MIN_VIEWS:
         raise DatasetError(folder, f"the {board.inner_corners[0]}x{board.inner_corners[1]} "
                                    f"chessboard was found in {len(used)} of {len(paths)} view(s), "
@@ -144,20 +180,16 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
                                       if unreadable else "")
                                    + "; add views or fix the board's pattern "
                                      "('intrinsics_board' in dataset.json, --pattern)")
-    if fix_k3 is None and len(used) < MIN_VIEWS_FOR_K3:
-        fix_k3 = True
-    res = _calibrate(img_pts, obj_pts, size, cv2.CALIB_FIX_K3)
-    flags = cv2.CALIB_FIX_K3
-    heldout = None
-    if fix_k3 is False:
-        res, flags = _calibrate(img_pts, obj_pts, size, 0), 0
-    elif fix_k3 is None:
-        # model selection on views the fit has not seen: k3 only when it clearly predicts
-        # held-out views better (it extrapolates wildly to the image corners otherwise)
-        heldout = {f: heldout_rms_px(img_pts, obj_pts, size, f)
-                   for f in (cv2.CALIB_FIX_K3, 0)}
-        if heldout[0] < K3_GAIN * heldout[cv2.CALIB_FIX_K3]:
-            res, flags = _calibrate(img_pts, obj_pts, size, 0), 0
+    # the lens model on all views, the views checked under it, and the model chosen again
+    # when views were left out (a wide lens's corner views fit a k3-fixed model badly)
+    flags, heldout = _lens_model(img_pts, obj_pts, size, fix_k3)
+    used, img_pts, obj_pts, left_out, folder_notes = _checked_views(used, img_pts, obj_pts,
+                                                                    size, board, folder, flags)
+    rejected = sorted(rejected + [p for p, _ in left_out])
+    notes += tuple(w for _, w in left_out) + tuple(folder_notes)
+    if left_out:
+        flags, heldout = _lens_model(img_pts, obj_pts, size, fix_k3)
+    res = _calibrate(img_pts, obj_pts, size, flags)
     if symmetric is None:
         symmetric = SYMMETRIC_PHOTOS
     if sharpest or symmetric:
@@ -166,8 +198,91 @@ def calibrate_intrinsics(paths: list[Path], board: BoardSpec,
         if n_changed:
             res = _calibrate(img_pts, obj_pts, size, flags)
     camera, per_view, rvecs, tvecs = res
+    sigma, problem = None, None
+    if len(used) >= MIN_VIEWS_CHECKED:
+        sigma = jackknife_sigma(held_out_views(img_pts, obj_pts, size, flags).intrinsics)
+        problem = conditioning_problem(sigma, float(np.mean(np.diag(camera.K)[:2])),
+                                       board_tilts_deg(rvecs), len(used))
+    else:
+        problem = ((f"only {len(used)} usable photos: the camera cannot be checked against "
+                   f"photos it was not fitted to (at least {MIN_VIEWS_CHECKED} are needed); "
+                   "add photos with the board tilted 30-45 deg towards each side of the image"),
+                   False)
+    if problem is not None:
+        if problem[1]:
+            raise DatasetError(folder, problem[0])
+        notes += (f"{folder}: {problem[0]}",)
     return IntrinsicsResult(camera, per_view, tuple(used), tuple(rejected), tuple(img_pts),
-                            tuple(obj_pts), flags, rvecs, tvecs, heldout, warnings=notes)
+                            tuple(obj_pts), flags, rvecs, tvecs, heldout, warnings=notes,
+                            sigma_px=None if sigma is None else tuple(float(v) for v in sigma))
+
+
+def _lens_model(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tuple[int, int],
+                fix_k3: bool | None) -> tuple[int, dict | None]:
+    """``cv2.calibrateCamera`` flags of the lens model, and the held-out RMS of each model
+    compared (None when not compared). ``fix_k3`` True: k3 fixed, False: free (tangential
+    terms free in both). None: model selection on views the fit has not seen
+    (:func:`heldout_rms_px`): from the simplest model (k1, k2 only) on, tangential p1, p2 and
+    then k3 are freed only when they lower the held-out RMS by more than 3 % (``K3_GAIN``);
+    k3 only with ``MIN_VIEWS_FOR_K3`` views. Few views of a narrow lens trade the principal
+    point against p1, p2: on the 7 real TAPAS views, cx 338.4 px with them free (held-out
+    0.699 px), 308.1 px with them zero (0.692 px), the recordings' published 312.5 px."""
+    if fix_k3 is not None:
+        return (cv2.CALIB_FIX_K3 if fix_k3 else 0), None
+    models = [cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST, cv2.CALIB_FIX_K3]
+    if len(img_pts) >= MIN_VIEWS_FOR_K3:
+        models.append(0)
+    if len(img_pts) <= MIN_VIEWS:  # no view to hold out
+        return cv2.CALIB_FIX_K3, None
+    heldout = {f: heldout_rms_px(img_pts, obj_pts, size, f) for f in models}
+    flags = models[0]
+    for f in models[1:]:
+        if heldout[f] < K3_GAIN * heldout[flags]:
+            flags = f
+    return flags, heldout
+
+
+def _checked_views(used: list[Path], img_pts: list[np.ndarray], obj_pts: list[np.ndarray],
+                   size: tuple[int, int], board: BoardSpec, folder: Path, flags: int
+                   ) -> tuple[list[Path], list[np.ndarray], list[np.ndarray],
+                              list[tuple[Path, str]], list[str]]:
+    """The views without repeats (:func:`lidarcal.intrinsics_checks.duplicate_views`) and
+    without views that fit the other views' camera badly
+    (:func:`lidarcal.intrinsics_checks.view_outlier` under the lens model ``flags``, worst
+    first, refitted after each, at most
+    ``MAX_OUTLIER_SHARE`` of them); also ``(path, warning)`` of each view left out and the
+    folder's warnings."""
+    out: list[tuple[Path, str]] = []
+    notes: list[str] = []
+    for j, i in duplicate_views(img_pts):
+        out.append((used[i], (f"{used[i]}: the same view as {used[j].name} (corners within "
+                             f"{DUPLICATE_RMS_PX} px); view not used (it would count twice)")))
+    drop = {i for _, i in duplicate_views(img_pts)}
+    keep = [i for i in range(len(used)) if i not in drop]
+    used, img_pts, obj_pts = ([x[i] for i in keep] for x in (used, img_pts, obj_pts))
+    noise = [grid_noise_px(q, board.pattern_size) for q in img_pts]
+    budget = int(MAX_OUTLIER_SHARE * len(used))
+    while len(used) >= MIN_VIEWS_CHECKED:
+        held = held_out_views(img_pts, obj_pts, size, flags)
+        k = view_outlier(held, np.asarray(noise))
+        if k is None:
+            break
+        med = float(np.nanmedian(held.rms_px))
+        if budget == 0:
+            notes.append(f"{folder}: {used[k].name} and others fit the camera of the "
+                                f"other photos badly ({used[k].name}: {held.rms_px[k]:.3f} px, "
+                                f"median {med:.3f} px), too many to leave out; check the "
+                                "board's pattern and square size, and that one camera at one "
+                                "zoom and focus took them all")
+            break
+        out.append((used[k], (f"{used[k]}: reprojection RMS {held.rms_px[k]:.3f} px under the "
+                             f"camera fitted to the other photos (median {med:.3f} px, its "
+                             f"corners' own scatter {noise[k]:.3f} px); view not used (another "
+                             "camera, zoom or focus? a bent board? wrong corners?)")))
+        budget -= 1
+        for x in (used, img_pts, obj_pts, noise):
+            del x[k]
+    return used, img_pts, obj_pts, out, notes
 
 
 #: whether :func:`calibrate_intrinsics` refines the photos' corners by their point symmetry
@@ -287,68 +402,6 @@ def grid_noise_px(corners: np.ndarray, pattern_size: tuple[int, int]) -> float:
     pred, gain = grid_prediction_scaled(np.asarray(corners, float), pattern_size)
     r = np.linalg.norm(np.asarray(corners, float) - pred, axis=1) / gain
     return float(np.sqrt(1.0 / np.log(2.0)) * np.nanmedian(r)) if np.isfinite(r).any() else 0.0
-
-
-def heldout_rms_px(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tuple[int, int],
-                   flags: int, folds: int = 4) -> float:
-    """Cross-validated reprojection RMS (px): the views split into ``folds`` interleaved
-    groups; each group's views are reprojected with the camera calibrated on the others
-    (each held-out view's pose by ``cv2.solvePnP`` with that camera)."""
-    n = len(img_pts)
-    folds = min(folds, n)
-    sq, cnt = 0.0, 0
-    for f in range(folds):
-        test = [i for i in range(n) if i % folds == f]
-        train = [i for i in range(n) if i % folds != f]
-        if len(train) < MIN_VIEWS:
-            continue
-        cam = _calibrate([img_pts[i] for i in train], [obj_pts[i] for i in train], size, flags)[0]
-        for i in test:
-            sq += view_reprojection_sq(cam, img_pts[i], obj_pts[i])
-            cnt += len(img_pts[i])
-    return float(np.sqrt(sq / max(cnt, 1)))
-
-
-def view_reprojection_sq(camera: CameraModel, img: np.ndarray, obj: np.ndarray) -> float:
-    """Sum of squared reprojection errors (px^2) of one view, its pose by ``solvePnP``
-    (IPPE start, then iterative LM) with the camera held fixed."""
-    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
-    o = np.asarray(obj, np.float64).reshape(-1, 3)
-    p = np.asarray(img, np.float64).reshape(-1, 2)
-    ok, rvec, tvec = cv2.solvePnP(o, p, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    if ok:
-        ok, rvec, tvec = cv2.solvePnP(o, p, K, dist, rvec, tvec, useExtrinsicGuess=True,
-                                      flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
-        raise ValueError("solvePnP failed on a held-out view")
-    proj, _ = cv2.projectPoints(o, rvec, tvec, K, dist)
-    return float(np.sum((proj.reshape(-1, 2) - p) ** 2))
-
-
-def _calibrate(img_pts: list[np.ndarray], obj_pts: list[np.ndarray], size: tuple[int, int],
-               flags: int) -> tuple[CameraModel, np.ndarray, tuple, tuple]:
-    """Zhang's calibration (``cv2.calibrateCameraExtended``) on one OpenCV thread.
-
-    With several threads OpenCV sums the views' normal equations in whatever order the
-    threads finish, so the same photos gave cameras differing by ~1e-12 from run to run
-    (and calibration.json by ~1e-5 mm); on one thread the result is the same every run, at
-    ~0.01 s more for 40 views. The caller's thread count is restored."""
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        rms, K, dist, rvecs, tvecs, _, _, per_view = cv2.calibrateCameraExtended(
-            [o.astype(np.float32) for o in obj_pts],
-            [i.reshape(-1, 1, 2).astype(np.float32) for i in img_pts],
-            size, None, None, flags=flags, criteria=crit)
-    finally:
-        cv2.setNumThreads(threads)
-    dist5 = np.zeros(5)
-    d = np.asarray(dist, dtype=float).ravel()
-    dist5[: min(5, d.size)] = d[:5]
-    cam = CameraModel(np.asarray(K, dtype=float), dist5, (int(size[0]), int(size[1])),
-                      source="intrinsics", rms_px=float(rms))
-    return cam, np.asarray(per_view, dtype=float).ravel(), tuple(rvecs), tuple(tvecs)
 
 
 def _newton_step(J: tuple[np.ndarray, ...], r: np.ndarray) -> np.ndarray:

@@ -419,13 +419,12 @@ def _cmd_intrinsics(a: argparse.Namespace) -> int:
     K, d = cam.K, cam.dist
     print(f"views used {len(res.files_used)} of {len(paths)}; image "
           f"{cam.image_size[0]}x{cam.image_size[1]}")
-    for w in res.warnings:  # photos that cannot be used at all (unreadable, another size)
+    for w in res.warnings:  # photos left out (each named) and the folder's checks
         print(f"warning: {w}", file=sys.stderr)
-    for f in res.files_rejected:
-        if not any(w.startswith(f"{f}: ") for w in res.warnings):
-            print(f"warning: {f}: the {a.pattern[0]}x{a.pattern[1]} chessboard was not found; "
-                  "view not used", file=sys.stderr)
     print(f"fx {K[0, 0]:.3f}  fy {K[1, 1]:.3f}  cx {K[0, 2]:.3f}  cy {K[1, 2]:.3f}")
+    if res.sigma_px is not None:
+        print("1-sigma (leave-out spread) fx {:.3f}  fy {:.3f}  cx {:.3f}  cy {:.3f} px"
+              .format(*res.sigma_px))
     print("dist k1 k2 p1 p2 k3: " + " ".join(f"{v:.6f}" for v in d))
     print(f"RMS reprojection error {cam.rms_px:.4f} px")
     if a.out is not None:

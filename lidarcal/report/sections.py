@@ -170,6 +170,10 @@ def _intrinsics_section(inp: ReportInputs, det: _Detail, fig: _Figures) -> str:
         out.append(f"Views used: {len(intr.files_used)}; rejected: {len(intr.files_rejected)}"
                    + (" (" + ", ".join(esc(Path(p).name) for p in intr.files_rejected) + ")"
                       if intr.files_rejected else "") + ".\n")
+        if intr.sigma_px is not None:
+            out.append("1-sigma of the camera (the spread of the fits leaving each group of views "
+                       "out): fx {}, fy {}, cx {}, cy {} px.\n".format(
+                           *(fnum(v, 2) for v in intr.sigma_px)))
         out.append(fig("reprojection", lambda: _plot_reprojection(intr),
                        "Per-corner reprojection errors of the intrinsic calibration, one colour per "
                        "view.", width="60%"))
