@@ -447,7 +447,13 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
             warnings += joint_rigid_warnings(res)
             warnings += turn_scale_warnings(res, psi, samples, JOINT_RIGID_SIGMAS)
             # the photos' camera's own uncertainty, through the stripes' rays as well
-            spread = camera_spread(res, fit_planes=fit_planes)
+            try:
+                spread = camera_spread(res, fit_planes=fit_planes)
+            except (ValueError, np.linalg.LinAlgError) as e:
+                spread = None
+                warnings.append(f"{ds.root / 'intrinsics'}: the camera's uncertainty could not be "
+                                f"carried into 'sigma' ({e}); the sigmas leave it out: add "
+                                "intrinsics photos (board tilted 30-45 deg towards each side)")
             if spread is not None:
                 res.joint_model.info["camera_spread"] = spread
         mark("joint")
