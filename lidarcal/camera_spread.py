@@ -36,7 +36,10 @@ if TYPE_CHECKING:
 
 #: at most this many principal directions of the camera's ray uncertainty are refitted
 CAMERA_DIRECTIONS = 6
-#: ... and no more than needed to cover this share of the rays' variance
+#: ... and no more than needed to cover this share of the rays' variance. Not 0.95: the
+#: focal length's direction moves the rays little but the LiDAR's distance much (paper rig,
+#: camera from 12 photos, seed 1: the true camera moved the centre by 4.7-5.4 spreads with
+#: the 2 directions of 95 %, by 2.0-2.1 with the 4 of 99.99 %; 0.9 s for 4 on 21 positions)
 RAY_SHARE = 0.9999
 _STEP = np.r_[np.full(4, 1e-3), np.full(5, 1e-7)]  # finite-difference steps (px; unitless)
 
