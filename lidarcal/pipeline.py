@@ -43,6 +43,7 @@ from .calibration_checks import (
     setup_warnings,
 )
 from .camera import IntrinsicsResult, add_views, calibrate_intrinsics
+from .camera_spread import camera_spread
 from .geometry import Pose
 from .io.dataset import (
     CALIBRATION_FORMAT,
@@ -445,6 +446,16 @@ def _calibrate(ds: Dataset, camera: CameraModel, intr: IntrinsicsResult | None,
             warnings += [f"joint fit: {w}" for w in res.joint_model.warnings]
             warnings += joint_rigid_warnings(res)
             warnings += turn_scale_warnings(res, psi, samples, JOINT_RIGID_SIGMAS)
+            # the photos' camera's own uncertainty, through the stripes' rays as well
+            try:
+                spread = camera_spread(res, fit_planes=fit_planes)
+            except (ValueError, np.linalg.LinAlgError) as e:
+                spread = None
+                warnings.append(f"{ds.root / 'intrinsics'}: the camera's uncertainty could not be "
+                                f"carried into 'sigma' ({e}); the sigmas leave it out: add "
+                                "intrinsics photos (board tilted 30-45 deg towards each side)")
+            if spread is not None:
+                res.joint_model.info["camera_spread"] = spread
         mark("joint")
     return res
 
@@ -591,8 +602,9 @@ def sigma_block(model, positions: list[PositionResult]) -> dict:
     psi = np.array([p.psi_deg for p in positions], dtype=float)
     cols = model.position_sigma_columns([p.index for p in positions], psi)
     spread = model.info.get("rigid_spread")  # joint_rigid_warnings: widened to cover both fits
-    # turn_scale_warnings: widened by what the encoder's scale error does to the poses
-    for sp in (spread, model.info.get("turn_scale_spread")):
+    # turn_scale_warnings: widened by what the encoder's scale error does to the poses;
+    # camera_spread: by what the photos' camera's 1-sigma does to them
+    for sp in (spread, model.info.get("turn_scale_spread"), model.info.get("camera_spread")):
         if sp is None:
             continue
         for q in ("centre_mm", "z_axis_deg", "x_axis_deg"):
@@ -604,6 +616,7 @@ def sigma_block(model, positions: list[PositionResult]) -> dict:
             for j, p in enumerate(positions)]
     return {"level": "1-sigma", "method": "joint", **({"widened_to_rigid": True} if spread else {}),
             **({"widened_to_turn_scale": True} if "turn_scale_spread" in model.info else {}),
+            **({"widened_to_camera": True} if "camera_spread" in model.info else {}),
             "angle_jitter_deg": float(model.jitter_deg),
             "axis_direction_deg": _finite_or_none(cols["axis_direction_deg"][0]),
             "axis_point_mm": _finite_or_none(cols["axis_point_mm"][0]),
